@@ -1,0 +1,218 @@
+//! Deterministic, shardable, checkpointed execution of a simulation split
+//! into fixed chunks (style rule 9).
+//!
+//! A simulation of N paths is cut into `ceil(N / CHUNK_PATHS)` chunks of
+//! consecutive path indices. The chunk size is a constant, never derived from
+//! the thread count. Chunks run in parallel (rayon) in batches; each batch's
+//! tallies are merged *in chunk order* into the running total. Tallies are
+//! integer counts, so the merge is exact and the result is bitwise the same
+//! for any thread count, and for shards merged afterwards. A shard `k/N`
+//! (0-based k) is the contiguous chunk range `[k·C/N, (k+1)·C/N)`.
+//!
+//! Between batches the runner may write a checkpoint (the running tally and
+//! the next chunk) with an atomic rename; a resumed run starts from it and
+//! ends with the same tally as an uninterrupted one.
+
+use crate::error::{Error, Result};
+use crate::io::{read_json, write_json_atomic};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize, de::DeserializeOwned};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+/// Paths per chunk. Changing it changes nothing in the results (every path
+/// has its own stream); it sets the granularity of checkpoints and shards.
+pub const CHUNK_PATHS: u64 = 1 << 14;
+/// Chunks per batch between two checkpoint opportunities.
+const BATCH_CHUNKS: u64 = 32;
+
+/// Anything the runner can accumulate.
+pub trait Tally: Clone + Send + Serialize + DeserializeOwned {
+    fn merge(&mut self, other: &Self);
+}
+
+impl Tally for super::tally::ProfileTally {
+    fn merge(&mut self, other: &Self) {
+        super::tally::ProfileTally::merge(self, other)
+    }
+}
+
+/// `--shard k/N`: the k-th of N slices (0-based).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Shard {
+    pub index: u64,
+    pub count: u64,
+}
+
+impl Shard {
+    /// Parses `k/N` with 0 ≤ k < N.
+    pub fn parse(s: &str) -> Result<Self> {
+        const ALLOWED: &str = "k/N with integers 0 <= k < N";
+        let (k, n) = s.split_once('/').ok_or_else(|| Error::param("shard", s, ALLOWED))?;
+        match (k.trim().parse::<u64>(), n.trim().parse::<u64>()) {
+            (Ok(index), Ok(count)) if index < count => Ok(Shard { index, count }),
+            _ => Err(Error::param("shard", s, ALLOWED)),
+        }
+    }
+}
+
+/// The chunk range `[lo, hi)` of a simulation of `paths` paths, or of one shard of it.
+pub fn chunk_range(paths: u64, shard: Option<Shard>) -> (u64, u64) {
+    let chunks = paths.div_ceil(CHUNK_PATHS);
+    match shard {
+        None => (0, chunks),
+        Some(Shard { index, count }) => {
+            let at = |k: u64| ((k as u128 * chunks as u128) / count as u128) as u64;
+            (at(index), at(index + 1))
+        }
+    }
+}
+
+/// The path range `[first, first + count)` of chunk `c`.
+pub fn chunk_paths(paths: u64, c: u64) -> (u64, u64) {
+    let first = c * CHUNK_PATHS;
+    (first, CHUNK_PATHS.min(paths.saturating_sub(first)))
+}
+
+/// Checkpoint of a running simulation. `key` identifies the configuration
+/// (a resumed run must be the same simulation).
+#[derive(Serialize, Deserialize)]
+struct Checkpoint<T> {
+    format: String,
+    key: serde_json::Value,
+    next_chunk: u64,
+    wall_s: f64,
+    tally: T,
+}
+
+/// How to run: where to checkpoint, how often, whether to resume, progress.
+#[derive(Clone, Debug, Default)]
+pub struct RunOptions {
+    /// Checkpoint file; `None` disables checkpoints.
+    pub checkpoint: Option<PathBuf>,
+    /// Minimum time between two checkpoints (a checkpoint is written after
+    /// the first batch that ends past it).
+    pub checkpoint_every: Duration,
+    /// Continue from the checkpoint if one exists.
+    pub resume: bool,
+    /// Show a progress bar on stderr (only drawn on a terminal).
+    pub progress: bool,
+}
+
+/// Result of [`run`]: the tally and the wall time spent on it, including
+/// time spent before a resume.
+pub struct RunOutcome<T> {
+    pub tally: T,
+    pub wall_s: f64,
+}
+
+/// Runs chunks `range.0..range.1`, computing each with `chunk` and merging in
+/// chunk order into `empty`.
+pub fn run<T: Tally>(
+    key: &serde_json::Value,
+    range: (u64, u64),
+    empty: T,
+    chunk: impl Fn(u64) -> T + Sync,
+    opts: &RunOptions,
+) -> Result<RunOutcome<T>> {
+    let start = Instant::now();
+    let (mut next, mut total, mut wall_before) = (range.0, empty, 0.0);
+    if let (true, Some(path)) = (opts.resume, &opts.checkpoint) {
+        if path.exists() {
+            let ck: Checkpoint<T> = read_json(path)?;
+            if &ck.key != key {
+                return Err(Error::format(
+                    path,
+                    "key",
+                    "checkpoint belongs to a different simulation (configuration differs)",
+                ));
+            }
+            if !(range.0..=range.1).contains(&ck.next_chunk) {
+                return Err(Error::format(path, "next_chunk", "outside this run's chunk range"));
+            }
+            next = ck.next_chunk;
+            total = ck.tally;
+            wall_before = ck.wall_s;
+        }
+    }
+    let bar = progress_bar(opts.progress, range, next);
+    let mut last_checkpoint = Instant::now();
+    while next < range.1 {
+        let hi = (next + BATCH_CHUNKS).min(range.1);
+        let parts: Vec<T> = (next..hi).into_par_iter().map(&chunk).collect();
+        for p in &parts {
+            total.merge(p);
+        }
+        next = hi;
+        if let Some(b) = &bar {
+            b.set_position(next - range.0);
+        }
+        if let Some(path) = &opts.checkpoint {
+            if next < range.1 && last_checkpoint.elapsed() >= opts.checkpoint_every {
+                let ck = Checkpoint {
+                    format: "svkernel.checkpoint".into(),
+                    key: key.clone(),
+                    next_chunk: next,
+                    wall_s: wall_before + start.elapsed().as_secs_f64(),
+                    tally: total.clone(),
+                };
+                write_json_atomic(path, &ck)?;
+                last_checkpoint = Instant::now();
+            }
+        }
+    }
+    if let Some(b) = bar {
+        b.finish_and_clear();
+    }
+    Ok(RunOutcome {
+        tally: total,
+        wall_s: wall_before + start.elapsed().as_secs_f64(),
+    })
+}
+
+fn progress_bar(enabled: bool, range: (u64, u64), next: u64) -> Option<indicatif::ProgressBar> {
+    if !enabled {
+        return None;
+    }
+    let bar = indicatif::ProgressBar::with_draw_target(
+        Some(range.1 - range.0),
+        indicatif::ProgressDrawTarget::stderr(),
+    );
+    if let Ok(style) = indicatif::ProgressStyle::with_template(
+        "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} chunks (ETA {eta})",
+    ) {
+        bar.set_style(style);
+    }
+    bar.set_position(next - range.0);
+    Some(bar)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shards_tile_the_chunks() {
+        for paths in [1, CHUNK_PATHS, 10 * CHUNK_PATHS + 3, 1_000_003] {
+            for n in 1..7 {
+                let mut expect = 0;
+                for k in 0..n {
+                    let (lo, hi) = chunk_range(paths, Some(Shard { index: k, count: n }));
+                    assert_eq!(lo, expect);
+                    expect = hi;
+                }
+                assert_eq!(expect, chunk_range(paths, None).1);
+            }
+            let total: u64 = (0..chunk_range(paths, None).1).map(|c| chunk_paths(paths, c).1).sum();
+            assert_eq!(total, paths);
+        }
+    }
+
+    #[test]
+    fn shard_parse() {
+        assert_eq!(Shard::parse("2/5").unwrap(), Shard { index: 2, count: 5 });
+        for bad in ["5/5", "1", "a/b", "-1/3", "1/0"] {
+            assert!(Shard::parse(bad).is_err(), "{bad}");
+        }
+    }
+}

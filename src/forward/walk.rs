@@ -1,0 +1,194 @@
+//! The scalar analog random walk (f64): the plain reference implementation.
+//! [`super::simd`] runs the same walk eight paths at a time in f32 lanes and
+//! consumes the random streams in exactly the same order.
+//!
+//! # The step protocol (shared by both walks)
+//!
+//! *Launch* draws from the path's stream what the source needs (nothing for
+//! the pencil beam; disk position, direction and entry Fresnel for disks, see
+//! [`launch`]). Then every step draws three 32-bit numbers `a, b, c`:
+//!
+//! 1. free flight s = −ln(u_a)/σ_t with u_a ∈ (0, 1];
+//! 2. if the flight crosses the surface (or a slab's bottom), move to it; with
+//!    probability F(|w_z|) (Fresnel from inside, TIR included) reflect the
+//!    direction (u_b decides) and take the next step — free flights are
+//!    memoryless, so restarting one at the interface is exact — otherwise the
+//!    path leaves and is tallied;
+//! 3. otherwise move by s and collide: scatter if b < α·2³² (an integer
+//!    comparison, exact to 2⁻³² for any α), else be absorbed. A scattered path
+//!    turns by the Henyey–Greenstein cos θ from u_c and the azimuth
+//!    φ = 2π·b/(α·2³²) (b is uniform below its threshold, so it is reused).
+//!
+//! # Termination at α = 1
+//!
+//! At α = 1 every path returns to the surface, but the return time is heavy
+//! tailed (the depth is a recurrent 1-D walk: P(n > N) ~ N^{−1/2}). A path is
+//! stopped after `max_events` scatterings and counted as `truncated`. The
+//! bias of any tallied fraction is then at most the truncated fraction, which
+//! every result reports; for α < 1 it is at most α^max_events.
+
+use super::fresnel::{fresnel_dielectric, refract_cos, r_specular};
+use super::medium::{Medium, Source};
+use super::rng::{PathRng, threshold_u32, unit_f64, unit_open0_f64};
+use super::sampling::{
+    Vec3, rotate_direction, sample_cosine_cos_theta, sample_disk_concentric, sample_hg_cos,
+};
+use super::tally::{ProfileTally, RadialBins};
+use std::f64::consts::PI;
+
+/// A path inside the medium, right after entry.
+#[derive(Clone, Copy, Debug)]
+pub struct Launched {
+    pub position: Vec3,
+    pub direction: Vec3,
+}
+
+/// Launches path from `source`: `None` if it is reflected specularly at the
+/// surface (sampled only for diffuse light; at normal incidence the constant
+/// entry transmittance is a weight, [`entry_weight`]).
+pub fn launch(source: &Source, eta: f64, rng: &mut PathRng) -> Option<Launched> {
+    let down = [0.0, 0.0, -1.0];
+    match *source {
+        Source::Pencil => Some(Launched {
+            position: [0.0; 3],
+            direction: down,
+        }),
+        Source::Collimated { radius } => {
+            let d = sample_disk_concentric([rng.uniform(), rng.uniform()]);
+            Some(Launched {
+                position: [radius * d[0], radius * d[1], 0.0],
+                direction: down,
+            })
+        }
+        Source::Diffuse { radius } => {
+            let d = sample_disk_concentric([rng.uniform(), rng.uniform()]);
+            let cos_o = sample_cosine_cos_theta(rng.uniform());
+            let phi = 2.0 * PI * rng.uniform();
+            if rng.uniform() < fresnel_dielectric(cos_o, eta) {
+                return None;
+            }
+            // Snell from outside (η_rel = η): never total internal reflection.
+            let cos_t = refract_cos(cos_o, eta).unwrap_or(0.0);
+            let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
+            Some(Launched {
+                position: [radius * d[0], radius * d[1], 0.0],
+                direction: [sin_t * phi.cos(), sin_t * phi.sin(), -cos_t],
+            })
+        }
+    }
+}
+
+/// Power carried by each launched path, as a fraction of the incident power:
+/// 1 − ((η−1)/(η+1))² at normal incidence, 1 where entry is sampled.
+pub fn entry_weight(source: &Source, eta: f64) -> f64 {
+    if source.is_normal_incidence() {
+        1.0 - r_specular(eta)
+    } else {
+        1.0
+    }
+}
+
+/// How a walk ended.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Fate {
+    /// Left through the surface at (x, y) after `events` scatterings.
+    Exit { x: f64, y: f64 },
+    Transmitted,
+    Absorbed,
+    Truncated,
+}
+
+/// Walks one launched path to its end; returns the fate and the number of
+/// scattering events.
+pub fn walk(medium: &Medium, max_events: u32, start: Launched, rng: &mut PathRng) -> (Fate, u32) {
+    let sigma_t = medium.sigma_t();
+    let alpha_threshold = threshold_u32(medium.alpha);
+    let inv_eta = 1.0 / medium.eta;
+    let bottom = medium.thickness.map(|l| -l);
+    let [mut x, mut y, mut z] = start.position;
+    let mut w = start.direction;
+    let mut n = 0u32;
+    loop {
+        let (a, b, c) = (rng.next_u32(), rng.next_u32(), rng.next_u32());
+        // ---- free flight ----------------------------------------------------
+        let s = -unit_open0_f64(a).ln() / sigma_t;
+        // ---- boundary: surface (w_z > 0) or slab bottom (w_z < 0) ------------
+        let to_wall = if w[2] > 0.0 {
+            -z / w[2]
+        } else if let (Some(zb), true) = (bottom, w[2] < 0.0) {
+            (zb - z) / w[2]
+        } else {
+            f64::INFINITY
+        };
+        if s >= to_wall {
+            x += w[0] * to_wall;
+            y += w[1] * to_wall;
+            let at_top = w[2] > 0.0;
+            z = if at_top { 0.0 } else { bottom.unwrap_or(0.0) };
+            if unit_f64(b) < fresnel_dielectric(w[2].abs(), inv_eta) {
+                w[2] = -w[2]; // internal reflection, TIR included
+                continue;
+            }
+            return (if at_top { Fate::Exit { x, y } } else { Fate::Transmitted }, n);
+        }
+        x += w[0] * s;
+        y += w[1] * s;
+        z += w[2] * s;
+        // ---- collision: absorb or scatter -----------------------------------
+        if (b as u64) >= alpha_threshold {
+            return (Fate::Absorbed, n);
+        }
+        n += 1;
+        if n >= max_events {
+            return (Fate::Truncated, n);
+        }
+        let cos_theta = sample_hg_cos(medium.g, unit_f64(c));
+        let phi = 2.0 * PI * (b as f64 + 0.5) / alpha_threshold as f64;
+        w = rotate_direction(w, cos_theta, phi);
+    }
+}
+
+/// Adds one finished path to the tally.
+#[inline]
+pub fn record(tally: &mut ProfileTally, bins: &RadialBins, fate: Fate, events: u32) {
+    tally.events += events as u64;
+    match fate {
+        Fate::Exit { x, y } => {
+            let k = bins.index((x * x + y * y).sqrt());
+            match events {
+                0 => tally.exit_unscattered += 1,
+                1 => tally.exit_single[k] += 1,
+                _ => tally.exit_multi[k] += 1,
+            }
+        }
+        Fate::Transmitted => tally.transmitted += 1,
+        Fate::Absorbed => tally.absorbed += 1,
+        Fate::Truncated => tally.truncated += 1,
+    }
+}
+
+/// Simulates paths `first..first + count` of the stream family `seed` with the
+/// scalar walk and tallies them.
+pub fn simulate_scalar(
+    medium: &Medium,
+    source: &Source,
+    bins: &RadialBins,
+    max_events: u32,
+    seed: u64,
+    first: u64,
+    count: u64,
+) -> ProfileTally {
+    let mut tally = ProfileTally::new(bins);
+    for path in first..first + count {
+        tally.paths += 1;
+        let mut rng = PathRng::new(seed, path);
+        match launch(source, medium.eta, &mut rng) {
+            None => tally.specular += 1,
+            Some(start) => {
+                let (fate, n) = walk(medium, max_events, start, &mut rng);
+                record(&mut tally, bins, fate, n);
+            }
+        }
+    }
+    tally
+}
