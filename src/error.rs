@@ -49,7 +49,11 @@ impl Error {
             source,
         }
     }
-    pub(crate) fn format(path: impl Into<PathBuf>, key: impl Into<String>, msg: impl ToString) -> Self {
+    pub(crate) fn format(
+        path: impl Into<PathBuf>,
+        key: impl Into<String>,
+        msg: impl ToString,
+    ) -> Self {
         Error::Format {
             path: path.into(),
             key: key.into(),

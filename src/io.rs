@@ -6,10 +6,25 @@ use serde::{Serialize, de::DeserializeOwned};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-/// Temporary sibling of `path` (same directory, so the rename is atomic).
-fn temp_path(path: &Path) -> PathBuf {
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    path.with_file_name(format!(".{name}.tmp.{}", std::process::id()))
+/// Temporary sibling of `path` (same directory, so the rename is atomic). It
+/// keeps the extension, for writers that pick the format from it.
+pub fn temp_sibling(path: &Path) -> PathBuf {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        let _ = std::fs::create_dir_all(dir);
+    }
+    path.with_file_name(format!(".tmp{}-{name}", std::process::id()))
+}
+
+/// Moves a finished temporary file over its destination.
+pub fn commit(tmp: &Path, path: &Path) -> Result<()> {
+    std::fs::rename(tmp, path).map_err(|e| {
+        let _ = std::fs::remove_file(tmp);
+        Error::io(path, e)
+    })
 }
 
 /// Writes `bytes` to `path` atomically: to a temporary file in the same
@@ -26,7 +41,7 @@ pub fn write_atomic_with(
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
     }
-    let tmp = temp_path(path);
+    let tmp = temp_sibling(path);
     let result = (|| {
         let mut f = std::fs::File::create(&tmp)?;
         write(&mut f)?;
@@ -42,7 +57,8 @@ pub fn write_atomic_with(
 
 /// Serialises `value` as pretty JSON to `path`, atomically.
 pub fn write_json_atomic<T: Serialize>(path: &Path, value: &T) -> Result<()> {
-    let bytes = serde_json::to_vec_pretty(value).map_err(|e| Error::format(path, "(serialise)", e))?;
+    let bytes =
+        serde_json::to_vec_pretty(value).map_err(|e| Error::format(path, "(serialise)", e))?;
     write_atomic(path, &bytes)
 }
 
@@ -51,7 +67,11 @@ pub fn write_json_atomic<T: Serialize>(path: &Path, value: &T) -> Result<()> {
 pub fn read_json<T: DeserializeOwned>(path: &Path) -> Result<T> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
     serde_json::from_str(&text).map_err(|e| {
-        let key = if e.is_eof() { "(truncated file)".to_string() } else { format!("line {}", e.line()) };
+        let key = if e.is_eof() {
+            "(truncated file)".to_string()
+        } else {
+            format!("line {}", e.line())
+        };
         Error::format(path, key, e)
     })
 }

@@ -31,9 +31,11 @@
 //!   a pure function of `(seed, i)` ([`forward::rng`]); results never depend on
 //!   the thread count or on sharding.
 
+pub mod demo;
 pub mod error;
 pub mod forward;
 pub mod io;
+pub mod oracles;
 pub mod plot;
 pub mod provenance;
 pub mod testing;

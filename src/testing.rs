@@ -39,15 +39,16 @@ pub fn normal_upper_quantile(alpha: f64) -> f64 {
 pub fn erfc(x: f64) -> f64 {
     let z = x.abs();
     let t = 1.0 / (1.0 + 0.5 * z);
-    let r = t * (-z * z - 1.26551223
-        + t * (1.00002368
-            + t * (0.37409196
-                + t * (0.09678418
-                    + t * (-0.18628806
-                        + t * (0.27886807
-                            + t * (-1.13520398
-                                + t * (1.48851587 + t * (-0.82215223 + t * 0.17087277)))))))))
-        .exp();
+    let r = t
+        * (-z * z - 1.26551223
+            + t * (1.00002368
+                + t * (0.37409196
+                    + t * (0.09678418
+                        + t * (-0.18628806
+                            + t * (0.27886807
+                                + t * (-1.13520398
+                                    + t * (1.48851587 + t * (-0.82215223 + t * 0.17087277)))))))))
+            .exp();
     if x >= 0.0 { r } else { 2.0 - r }
 }
 
@@ -66,12 +67,16 @@ pub fn chi2_statistic(observed: &[u64], expected: &[f64]) -> (f64, usize) {
             e_acc = 0.0;
         }
     }
-    if e_acc > 0.0 {
-        if let (Some(lo), Some(le)) = (obs.last_mut(), exp.last_mut()) {
-            *lo += o_acc;
-            *le += e_acc;
-        }
+    if e_acc > 0.0
+        && let (Some(lo), Some(le)) = (obs.last_mut(), exp.last_mut())
+    {
+        *lo += o_acc;
+        *le += e_acc;
     }
-    let stat = obs.iter().zip(&exp).map(|(o, e)| (o - e) * (o - e) / e).sum();
+    let stat = obs
+        .iter()
+        .zip(&exp)
+        .map(|(o, e)| (o - e) * (o - e) / e)
+        .sum();
     (stat, exp.len().saturating_sub(1))
 }

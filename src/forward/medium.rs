@@ -27,7 +27,7 @@ impl Medium {
         if !(0.0..=1.0).contains(&alpha) {
             return Err(Error::param("albedo", alpha, "in [0, 1]"));
         }
-        if !(g.abs() < 1.0) {
+        if g.is_nan() || g.abs() >= 1.0 {
             return Err(Error::param("g", g, "in (-1, 1)"));
         }
         if !(1.0..=3.0).contains(&eta) {
@@ -36,10 +36,8 @@ impl Medium {
         if !(rho > 0.0 && rho.is_finite()) {
             return Err(Error::param("density", rho, "finite and > 0"));
         }
-        if let Some(l) = thickness {
-            if !(l > 0.0 && l.is_finite()) {
-                return Err(Error::param("thickness", l, "finite and > 0"));
-            }
+        if let Some(l) = thickness.filter(|l| !(*l > 0.0 && l.is_finite())) {
+            return Err(Error::param("thickness", l, "finite and > 0"));
         }
         Ok(Medium {
             alpha,
@@ -128,7 +126,9 @@ mod tests {
 
     #[test]
     fn validation_names_the_parameter() {
-        let e = Medium::new(1.2, 0.3, 1.5, 1.0, None).unwrap_err().to_string();
+        let e = Medium::new(1.2, 0.3, 1.5, 1.0, None)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("albedo") && e.contains("[0, 1]"), "{e}");
         assert!(Medium::new(0.5, 1.0, 1.5, 1.0, None).is_err());
         assert!(Medium::new(0.5, 0.3, 0.9, 1.0, None).is_err());
@@ -143,7 +143,14 @@ mod tests {
         for s in ["pencil", "collimated:1", "diffuse:4.5"] {
             assert_eq!(Source::parse(s).unwrap().to_string(), s);
         }
-        for bad in ["", "laser", "collimated", "collimated:-1", "diffuse:x", "pencil:1"] {
+        for bad in [
+            "",
+            "laser",
+            "collimated",
+            "collimated:-1",
+            "diffuse:x",
+            "pencil:1",
+        ] {
             assert!(Source::parse(bad).is_err(), "{bad}");
         }
     }

@@ -61,7 +61,11 @@ impl ProfileConfig {
         }
         let b = &self.bins;
         if !(b.r_min > 0.0 && b.r_max > b.r_min && b.r_max.is_finite() && b.per_decade > 0) {
-            return Err(Error::param("bins", format!("{b:?}"), "0 < r_min < r_max, per_decade > 0"));
+            return Err(Error::param(
+                "bins",
+                format!("{b:?}"),
+                "0 < r_min < r_max, per_decade > 0",
+            ));
         }
         Ok(())
     }
@@ -179,11 +183,7 @@ impl ProfileDoc {
         };
         let n1: u64 = tally.exit_single.iter().sum();
         let nm: u64 = tally.exit_multi.iter().sum();
-        let (r_d, r_1, r_m) = (
-            norm.fraction(n1 + nm),
-            norm.fraction(n1),
-            norm.fraction(nm),
-        );
+        let (r_d, r_1, r_m) = (norm.fraction(n1 + nm), norm.fraction(n1), norm.fraction(nm));
         let r_sp = if config.source.is_normal_incidence() {
             crate::forward::fresnel::r_specular(config.medium.eta)
         } else {
@@ -208,7 +208,12 @@ impl ProfileDoc {
             transmitted: transmitted.value,
             transmitted_stderr: transmitted.stderr,
             truncated,
-            energy_balance: r_d.value + r_sp + absorbed + transmitted.value + truncated + unscattered,
+            energy_balance: r_d.value
+                + r_sp
+                + absorbed
+                + transmitted.value
+                + truncated
+                + unscattered,
             events: tally.events,
             mean_events: tally.events as f64 / tally.paths.max(1) as f64,
             paths: tally.paths,
@@ -226,17 +231,33 @@ impl ProfileDoc {
     pub fn load(path: &Path) -> Result<Self> {
         let doc: ProfileDoc = crate::io::read_json(path)?;
         if doc.format != PROFILE_FORMAT {
-            return Err(Error::format(path, "format", format!("expected {PROFILE_FORMAT}, found {}", doc.format)));
+            return Err(Error::format(
+                path,
+                "format",
+                format!("expected {PROFILE_FORMAT}, found {}", doc.format),
+            ));
         }
         if doc.version != PROFILE_VERSION {
-            return Err(Error::format(path, "version", format!("unsupported version {}", doc.version)));
+            return Err(Error::format(
+                path,
+                "version",
+                format!("unsupported version {}", doc.version),
+            ));
         }
         let n = doc.config.bins.len();
         if doc.tally.exit_single.len() != n || doc.tally.exit_multi.len() != n {
-            return Err(Error::format(path, "tally", "bin count does not match config.bins"));
+            return Err(Error::format(
+                path,
+                "tally",
+                "bin count does not match config.bins",
+            ));
         }
         if doc.tally.accounted() != doc.tally.paths {
-            return Err(Error::format(path, "tally.paths", "counts do not add up to the launched paths"));
+            return Err(Error::format(
+                path,
+                "tally.paths",
+                "counts do not add up to the launched paths",
+            ));
         }
         Ok(doc)
     }
@@ -278,7 +299,9 @@ fn bin_results(config: &ProfileConfig, tally: &ProfileTally, norm: &Normalizer) 
         p_m_stderr,
         r_1,
         r_m,
-        overflow: norm.fraction(tally.exit_single[last] + tally.exit_multi[last]).value,
+        overflow: norm
+            .fraction(tally.exit_single[last] + tally.exit_multi[last])
+            .value,
     }
 }
 
@@ -286,7 +309,10 @@ fn bin_results(config: &ProfileConfig, tally: &ProfileTally, norm: &Normalizer) 
 /// identical and the chunk ranges disjoint; if they tile the whole
 /// simulation, the result is the complete document, bitwise equal (up to
 /// provenance and wall time) to the unsharded run.
-pub fn merge(docs: &[(std::path::PathBuf, ProfileDoc)], provenance: Provenance) -> Result<ProfileDoc> {
+pub fn merge(
+    docs: &[(std::path::PathBuf, ProfileDoc)],
+    provenance: Provenance,
+) -> Result<ProfileDoc> {
     let Some((_, first)) = docs.first() else {
         return Err(Error::param("merge inputs", "none", "at least one file"));
     };
@@ -322,5 +348,12 @@ pub fn merge(docs: &[(std::path::PathBuf, ProfileDoc)], provenance: Provenance) 
     }
     let complete = joined == [chunk_range(first.config.paths, None)];
     let shard = if complete { None } else { first.shard };
-    Ok(ProfileDoc::new(first.config.clone(), shard, joined, tally, wall_s, provenance))
+    Ok(ProfileDoc::new(
+        first.config.clone(),
+        shard,
+        joined,
+        tally,
+        wall_s,
+        provenance,
+    ))
 }

@@ -48,7 +48,9 @@ impl Shard {
     /// Parses `k/N` with 0 ≤ k < N.
     pub fn parse(s: &str) -> Result<Self> {
         const ALLOWED: &str = "k/N with integers 0 <= k < N";
-        let (k, n) = s.split_once('/').ok_or_else(|| Error::param("shard", s, ALLOWED))?;
+        let (k, n) = s
+            .split_once('/')
+            .ok_or_else(|| Error::param("shard", s, ALLOWED))?;
         match (k.trim().parse::<u64>(), n.trim().parse::<u64>()) {
             (Ok(index), Ok(count)) if index < count => Ok(Shard { index, count }),
             _ => Err(Error::param("shard", s, ALLOWED)),
@@ -117,23 +119,27 @@ pub fn run<T: Tally>(
 ) -> Result<RunOutcome<T>> {
     let start = Instant::now();
     let (mut next, mut total, mut wall_before) = (range.0, empty, 0.0);
-    if let (true, Some(path)) = (opts.resume, &opts.checkpoint) {
-        if path.exists() {
-            let ck: Checkpoint<T> = read_json(path)?;
-            if &ck.key != key {
-                return Err(Error::format(
-                    path,
-                    "key",
-                    "checkpoint belongs to a different simulation (configuration differs)",
-                ));
-            }
-            if !(range.0..=range.1).contains(&ck.next_chunk) {
-                return Err(Error::format(path, "next_chunk", "outside this run's chunk range"));
-            }
-            next = ck.next_chunk;
-            total = ck.tally;
-            wall_before = ck.wall_s;
+    if let (true, Some(path)) = (opts.resume, &opts.checkpoint)
+        && path.exists()
+    {
+        let ck: Checkpoint<T> = read_json(path)?;
+        if &ck.key != key {
+            return Err(Error::format(
+                path,
+                "key",
+                "checkpoint belongs to a different simulation (configuration differs)",
+            ));
         }
+        if !(range.0..=range.1).contains(&ck.next_chunk) {
+            return Err(Error::format(
+                path,
+                "next_chunk",
+                "outside this run's chunk range",
+            ));
+        }
+        next = ck.next_chunk;
+        total = ck.tally;
+        wall_before = ck.wall_s;
     }
     let bar = progress_bar(opts.progress, range, next);
     let mut last_checkpoint = Instant::now();
@@ -147,18 +153,19 @@ pub fn run<T: Tally>(
         if let Some(b) = &bar {
             b.set_position(next - range.0);
         }
-        if let Some(path) = &opts.checkpoint {
-            if next < range.1 && last_checkpoint.elapsed() >= opts.checkpoint_every {
-                let ck = Checkpoint {
-                    format: "svkernel.checkpoint".into(),
-                    key: key.clone(),
-                    next_chunk: next,
-                    wall_s: wall_before + start.elapsed().as_secs_f64(),
-                    tally: total.clone(),
-                };
-                write_json_atomic(path, &ck)?;
-                last_checkpoint = Instant::now();
-            }
+        if let Some(path) = &opts.checkpoint
+            && next < range.1
+            && last_checkpoint.elapsed() >= opts.checkpoint_every
+        {
+            let ck = Checkpoint {
+                format: "svkernel.checkpoint".into(),
+                key: key.clone(),
+                next_chunk: next,
+                wall_s: wall_before + start.elapsed().as_secs_f64(),
+                tally: total.clone(),
+            };
+            write_json_atomic(path, &ck)?;
+            last_checkpoint = Instant::now();
         }
     }
     if let Some(b) = bar {
@@ -203,7 +210,9 @@ mod tests {
                 }
                 assert_eq!(expect, chunk_range(paths, None).1);
             }
-            let total: u64 = (0..chunk_range(paths, None).1).map(|c| chunk_paths(paths, c).1).sum();
+            let total: u64 = (0..chunk_range(paths, None).1)
+                .map(|c| chunk_paths(paths, c).1)
+                .sum();
             assert_eq!(total, paths);
         }
     }

@@ -116,7 +116,9 @@ mod tests {
         let mut counts = vec![0u64; bins];
         for _ in 0..n {
             let c = sample(rng.uniform());
-            let b = (((c + 1.0) / 2.0) * bins as f64).floor().clamp(0.0, bins as f64 - 1.0);
+            let b = (((c + 1.0) / 2.0) * bins as f64)
+                .floor()
+                .clamp(0.0, bins as f64 - 1.0);
             counts[b as usize] += 1;
         }
         let expected: Vec<f64> = (0..bins)
@@ -127,7 +129,10 @@ mod tests {
             })
             .collect();
         let (stat, dof) = chi2_statistic(&counts, &expected);
-        assert!(stat < chi2_critical(dof, CHI2_ALPHA), "chi2 {stat} dof {dof}");
+        assert!(
+            stat < chi2_critical(dof, CHI2_ALPHA),
+            "chi2 {stat} dof {dof}"
+        );
     }
 
     /// CDF of the HG cos θ in closed form: the inverse of `sample_hg_cos`.
@@ -166,7 +171,10 @@ mod tests {
         // Mean cosine of HG is g: positive g keeps the propagation direction.
         let mut rng = PathRng::new(3, 0);
         let n = 100_000;
-        let mean: f64 = (0..n).map(|_| sample_hg_cos(0.6, rng.uniform())).sum::<f64>() / n as f64;
+        let mean: f64 = (0..n)
+            .map(|_| sample_hg_cos(0.6, rng.uniform()))
+            .sum::<f64>()
+            / n as f64;
         assert!((mean - 0.6).abs() < 0.01, "{mean}");
         // And the rotated direction is at that cosine from the old one.
         let w = [0.0, 0.0, -1.0];
@@ -197,7 +205,10 @@ mod tests {
         for g in [-0.99, -1e-9, 0.0, 1e-9, 0.99] {
             for u in [0.0, 1e-12, 0.5, 1.0 - 1e-12, 1.0] {
                 let c = sample_hg_cos(g, u);
-                assert!(c.is_finite() && (-1.0..=1.0).contains(&c), "g={g} u={u} c={c}");
+                assert!(
+                    c.is_finite() && (-1.0..=1.0).contains(&c),
+                    "g={g} u={u} c={c}"
+                );
             }
         }
     }
@@ -229,7 +240,10 @@ mod tests {
         }
         let expected = vec![n as f64 / (nr * na) as f64; nr * na];
         let (stat, dof) = chi2_statistic(&counts, &expected);
-        assert!(stat < chi2_critical(dof, CHI2_ALPHA), "chi2 {stat} dof {dof}");
+        assert!(
+            stat < chi2_critical(dof, CHI2_ALPHA),
+            "chi2 {stat} dof {dof}"
+        );
     }
 
     #[test]

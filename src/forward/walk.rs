@@ -27,7 +27,7 @@
 //! bias of any tallied fraction is then at most the truncated fraction, which
 //! every result reports; for α < 1 it is at most α^max_events.
 
-use super::fresnel::{fresnel_dielectric, refract_cos, r_specular};
+use super::fresnel::{fresnel_dielectric, r_specular, refract_cos};
 use super::medium::{Medium, Source};
 use super::rng::{PathRng, threshold_u32, unit_f64, unit_open0_f64};
 use super::sampling::{
@@ -92,7 +92,10 @@ pub fn entry_weight(source: &Source, eta: f64) -> f64 {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Fate {
     /// Left through the surface at (x, y) after `events` scatterings.
-    Exit { x: f64, y: f64 },
+    Exit {
+        x: f64,
+        y: f64,
+    },
     Transmitted,
     Absorbed,
     Truncated,
@@ -129,7 +132,14 @@ pub fn walk(medium: &Medium, max_events: u32, start: Launched, rng: &mut PathRng
                 w[2] = -w[2]; // internal reflection, TIR included
                 continue;
             }
-            return (if at_top { Fate::Exit { x, y } } else { Fate::Transmitted }, n);
+            return (
+                if at_top {
+                    Fate::Exit { x, y }
+                } else {
+                    Fate::Transmitted
+                },
+                n,
+            );
         }
         x += w[0] * s;
         y += w[1] * s;

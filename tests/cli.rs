@@ -1,0 +1,196 @@
+//! The command line as a user drives it: clear errors with non-zero exit and
+//! no output left behind; `1e7` notation; shard + merge; resume after kill -9.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_svkernel"))
+}
+
+fn tmpdir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("svk-cli-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn json(p: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
+}
+
+fn profile(args: &[&str], out: &Path) -> std::process::Output {
+    bin()
+        .args(["simulate", "profile"])
+        .args(args)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn out_of_domain_parameters_fail_cleanly() {
+    let d = tmpdir("domain");
+    let out = d.join("x.json");
+    for (args, flag) in [
+        (vec!["--albedo", "1.5"], "albedo"),
+        (vec!["--albedo", "0.5", "--g", "1"], "g"),
+        (vec!["--albedo", "0.5", "--eta", "0.5"], "eta"),
+        (vec!["--albedo", "0.5", "--density", "-1"], "density"),
+        (vec!["--albedo", "0.5", "--source", "laser"], "source"),
+        (vec!["--albedo", "0.5", "--shard", "3/3"], "shard"),
+        (vec!["--albedo", "0.5", "--paths", "1.5"], "paths"),
+        (vec!["--albedo", "0.5", "--thickness", "0"], "thickness"),
+    ] {
+        let o = profile(&args, &out);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "{args:?}");
+        assert!(err.contains(flag), "{args:?}: {err}");
+        assert!(!err.contains("panicked"), "{err}");
+        assert_eq!(
+            std::fs::read_dir(&d).unwrap().count(),
+            0,
+            "{args:?} left a file"
+        );
+    }
+}
+
+#[test]
+fn scientific_path_counts_and_output_contract() {
+    let d = tmpdir("contract");
+    let out = d.join("p.json");
+    let o = profile(&["--albedo", "0.8", "--paths", "2e4", "--npy"], &out);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let v = json(&out);
+    assert_eq!(v["paths"], 20000);
+    for key in [
+        "R_d",
+        "R_d_stderr",
+        "R_1",
+        "R_1_stderr",
+        "R_m",
+        "R_m_stderr",
+        "wall_s",
+    ] {
+        assert!(v[key].as_f64().is_some_and(f64::is_finite), "{key}");
+    }
+    assert!(v["events"].as_u64().unwrap() > 20000);
+    let prov = &v["provenance"];
+    assert!(prov["command_line"].as_array().unwrap().len() > 3);
+    assert!(prov["threads"].as_u64().unwrap() >= 1);
+    assert_eq!(v["config"]["seed"], 1);
+    // The .npy sidecar is a real npy file: magic, then a float64 header.
+    let npy = std::fs::read(out.with_extension("npy")).unwrap();
+    assert_eq!(&npy[..6], b"\x93NUMPY");
+    assert!(String::from_utf8_lossy(&npy[..128]).contains("<f8"));
+    // No checkpoint left behind after success.
+    assert!(!d.join("p.json.ckpt").exists());
+}
+
+#[test]
+fn shards_merge_to_the_unsharded_result() {
+    let d = tmpdir("shards");
+    let common = [
+        "--albedo",
+        "0.9",
+        "--paths",
+        "1e5",
+        "--source",
+        "diffuse:2",
+        "--seed",
+        "7",
+    ];
+    let full = d.join("full.json");
+    assert!(profile(&common, &full).status.success());
+    let mut parts = Vec::new();
+    for k in 0..3 {
+        let p = d.join(format!("s{k}.json"));
+        let mut args = common.to_vec();
+        let shard = format!("{k}/3");
+        args.extend(["--shard", shard.as_str()]);
+        assert!(profile(&args, &p).status.success());
+        parts.push(p);
+    }
+    let merged = d.join("merged.json");
+    let o = bin()
+        .arg("merge")
+        .args(&parts)
+        .arg("--out")
+        .arg(&merged)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (a, b) = (json(&full), json(&merged));
+    assert_eq!(a["tally"], b["tally"]);
+    assert_eq!(a["bins"], b["bins"]);
+    assert_eq!(a["R_d"], b["R_d"]);
+    assert_eq!(b["shard"], serde_json::Value::Null);
+
+    // A truncated input is refused with its name, and nothing is written.
+    let bad = d.join("bad.json");
+    let text = std::fs::read_to_string(&parts[0]).unwrap();
+    std::fs::write(&bad, &text[..text.len() / 2]).unwrap();
+    let out2 = d.join("merged2.json");
+    let o = bin()
+        .arg("merge")
+        .arg(&bad)
+        .arg(&parts[1])
+        .arg("--out")
+        .arg(&out2)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("bad.json"), "{err}");
+    assert!(!out2.exists());
+}
+
+#[test]
+fn resume_after_kill_is_bitwise_identical() {
+    let d = tmpdir("resume");
+    // Scalar engine at α = 0.99: a few seconds, many batches.
+    let common = [
+        "--albedo", "0.99", "--paths", "2e6", "--engine", "scalar", "--seed", "3",
+    ];
+    let reference = d.join("ref.json");
+    assert!(profile(&common, &reference).status.success());
+
+    let out = d.join("run.json");
+    let ckpt = d.join("run.json.ckpt");
+    let mut child = bin()
+        .args(["simulate", "profile"])
+        .args(common)
+        .args(["--checkpoint-every", "0", "--out"])
+        .arg(&out)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let t0 = Instant::now();
+    while !ckpt.exists() && t0.elapsed() < Duration::from_secs(120) {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.kill().unwrap(); // SIGKILL
+    child.wait().unwrap();
+    assert!(ckpt.exists(), "no checkpoint was written");
+    assert!(!out.exists(), "the killed run must not leave an output");
+    let o = bin()
+        .args(["simulate", "profile"])
+        .args(common)
+        .args(["--resume", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (a, b) = (json(&reference), json(&out));
+    assert_eq!(a["tally"], b["tally"]);
+    assert_eq!(a["R_d"], b["R_d"]);
+    assert!(!ckpt.exists());
+
+    // A checkpoint of another simulation is refused by name.
+    std::fs::write(&ckpt, std::fs::read(d.join("ref.json")).unwrap()).unwrap();
+    let o = profile(&["--albedo", "0.5", "--paths", "1e4", "--resume"], &out);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("run.json.ckpt"));
+}
