@@ -28,6 +28,9 @@ pub enum Error {
         key: String,
         msg: String,
     },
+    /// A fit that failed (did not converge, or had too little data).
+    #[error(transparent)]
+    Fit(#[from] crate::fit::lm::FitError),
     /// Tallies that cannot be merged (different configuration, overlapping shards).
     #[error("cannot merge {path}: {msg}")]
     Merge { path: PathBuf, msg: String },

@@ -33,8 +33,10 @@
 
 pub mod demo;
 pub mod error;
+pub mod fit;
 pub mod forward;
 pub mod io;
+pub mod metamodel;
 pub mod oracles;
 pub mod plot;
 pub mod provenance;

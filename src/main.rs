@@ -35,6 +35,24 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Fit models to simulations.
+    #[command(subcommand)]
+    Fit(Fit),
+    /// Query the basis profile: R_d, R₁, Rₘ and p(r), CDF at given radii.
+    #[command(allow_negative_numbers = true)]
+    Profile {
+        #[arg(long)]
+        albedo: f64,
+        /// Comma-separated radii in MFP.
+        #[arg(long, value_delimiter = ',', default_value = "0.01,0.1,1,10")]
+        radii: Vec<f64>,
+        /// Basis model file.
+        #[arg(long, default_value = DEFAULT_BASIS)]
+        model: PathBuf,
+        /// Print JSON (the only output format; kept for scripts).
+        #[arg(long)]
+        json: bool,
+    },
     /// End-to-end demo on shipped data.
     Demo {
         #[arg(long, default_value = "out/demo")]
@@ -42,6 +60,41 @@ enum Command {
         /// Paths of the demo simulation.
         #[arg(long, default_value = "2e6", value_parser = parse_count)]
         paths: u64,
+    },
+}
+
+/// The shipped basis model.
+const DEFAULT_BASIS: &str = "data/profiles/basis.json";
+/// The shipped profiles of the default medium.
+const DEFAULT_PROFILES: &str = "data/profiles/eta1.5_g0.3_pencil";
+
+#[derive(Subcommand)]
+enum Fit {
+    /// Fit the smooth basis BSSRDF to a directory of profile documents.
+    Profiles {
+        #[arg(long = "in", default_value = DEFAULT_PROFILES)]
+        input: PathBuf,
+        #[arg(long, default_value = DEFAULT_BASIS)]
+        out: PathBuf,
+        /// Directory for report.json and the plots (default: OUT's directory/basis_report).
+        #[arg(long)]
+        report: Option<PathBuf>,
+        /// Exponentials in the multiple-scattering mixture.
+        #[arg(long, default_value_t = 6)]
+        components: usize,
+        /// Polynomial degree in sqrt(1 − α).
+        #[arg(long, default_value_t = 5)]
+        degree: usize,
+    },
+    /// Accuracy of a basis model against a directory of (fresh) profiles.
+    Check {
+        #[arg(long, default_value = DEFAULT_BASIS)]
+        model: PathBuf,
+        #[arg(long = "in")]
+        input: PathBuf,
+        /// Also write the rows as JSON.
+        #[arg(long)]
+        out: Option<PathBuf>,
     },
 }
 
@@ -226,12 +279,68 @@ fn demo(out: PathBuf, paths: u64) -> Result<()> {
     Ok(())
 }
 
+fn fit(f: Fit) -> Result<()> {
+    use svkernel::fit::report;
+    match f {
+        Fit::Profiles { input, out, report: dir, components, degree } => {
+            if !(1..=12).contains(&components) {
+                bail!("invalid components = {components}: must be in 1..=12");
+            }
+            if degree > 10 {
+                bail!("invalid degree = {degree}: must be <= 10");
+            }
+            let dir = dir.unwrap_or_else(|| out.parent().unwrap_or(std::path::Path::new(".")).join("basis_report"));
+            let r = report::fit_profiles(&input, &out, &dir, components, degree)?;
+            println!("{}", report::markdown_table(&r.training_accuracy));
+            println!(
+                "joint fit: {} after {} evaluations, χ²/dof = {:.3}; R_d(α=1) = {:.5} (target {:.5}); {:.1} s",
+                r.joint.termination, r.joint.evaluations, r.joint.chi2_per_dof, r.rd_at_one.0, r.rd_at_one.1, r.wall_s
+            );
+            println!("wrote {} and {}/report.json + plots", out.display(), dir.display());
+        }
+        Fit::Check { model, input, out } => {
+            let m = svkernel::metamodel::basis::BasisModel::load(&model)?;
+            let rows = report::check(&m, &input)?;
+            println!("{}", report::markdown_table(&rows));
+            if let Some(out) = out {
+                svkernel::io::write_json_atomic(&out, &rows)?;
+            }
+        }
+    }
+    Ok(())
+}
+
+fn profile_query(albedo: f64, radii: &[f64], model: &std::path::Path) -> Result<()> {
+    if !(0.0..=1.0).contains(&albedo) {
+        bail!("invalid albedo = {albedo}: must be in [0, 1]");
+    }
+    if let Some(r) = radii.iter().find(|r| !(**r >= 0.0 && r.is_finite())) {
+        bail!("invalid radii: {r} must be finite and >= 0");
+    }
+    let m = svkernel::metamodel::basis::BasisModel::load(model)?;
+    let (r1, rm) = m.r_1_m(albedo);
+    let v = serde_json::json!({
+        "albedo": albedo,
+        "R_d": r1 + rm,
+        "R_1": r1,
+        "R_m": rm,
+        "radii": radii,
+        "density": radii.iter().map(|&r| m.density(r, albedo)).collect::<Vec<_>>(),
+        "cdf": radii.iter().map(|&r| m.cdf(r, albedo)).collect::<Vec<_>>(),
+        "model": model.display().to_string(),
+    });
+    println!("{}", serde_json::to_string_pretty(&v)?);
+    Ok(())
+}
+
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Simulate(Simulate::Profile(a)) => simulate_profile(a),
         Command::Merge { inputs, out } => merge(inputs, out),
         Command::Demo { out, paths } => demo(out, paths),
+        Command::Fit(f) => fit(f),
+        Command::Profile { albedo, radii, model, json: _ } => profile_query(albedo, &radii, &model),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

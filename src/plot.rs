@@ -1,78 +1,139 @@
-//! PNG plots (plotters, bitmap backend, DejaVu via fontconfig).
+//! PNG plots (plotters, bitmap backend, text through fontconfig). One
+//! generic x–y chart ([`chart`]) serves every figure; writes are atomic.
 
 use crate::error::{Error, Result};
 use crate::forward::profile::ProfileDoc;
 use plotters::prelude::*;
 use std::path::Path;
 
-/// Log-log plot of the radial density p(r) = 2πr·R(r) of a profile, split
-/// into single (R₁) and multiple (Rₘ) scattering, with ±1 standard error bars.
-/// Written atomically to `path`.
-pub fn profile_plot(doc: &ProfileDoc, path: &Path) -> Result<()> {
-    let b = &doc.bins;
-    let mid = |k: usize| (b.edges[k] * b.edges[k + 1]).sqrt();
-    let series = |v: &[f64], e: &[f64]| -> Vec<(f64, f64, f64)> {
-        (1..v.len())
-            .filter(|&k| v[k] > 0.0)
-            .map(|k| (mid(k), v[k], e[k]))
-            .collect()
-    };
-    let single = series(&b.p_1, &b.p_1_stderr);
-    let multi = series(&b.p_m, &b.p_m_stderr);
-    let all: Vec<f64> = single.iter().chain(&multi).map(|p| p.1).collect();
-    let ymax = all.iter().cloned().fold(1e-12, f64::max) * 3.0;
-    let ymin = all
-        .iter()
-        .cloned()
-        .fold(f64::INFINITY, f64::min)
-        .max(ymax * 1e-9)
-        / 3.0;
-    let title = format!(
-        "p(r) = 2πr·R(r): α = {}, g = {}, η = {}, {} paths",
-        doc.config.medium.alpha, doc.config.medium.g, doc.config.medium.eta, doc.paths
-    );
+/// How a series is drawn.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Style {
+    Line,
+    Dashed,
+    Points,
+}
+
+/// One series of a chart: points (x, y) with optional ±error bars.
+#[derive(Clone, Debug)]
+pub struct Series {
+    pub label: String,
+    pub points: Vec<(f64, f64)>,
+    pub errors: Option<Vec<f64>>,
+    pub style: Style,
+    /// Index into the palette.
+    pub color: usize,
+}
+
+impl Series {
+    pub fn line(label: impl Into<String>, points: Vec<(f64, f64)>, color: usize) -> Self {
+        Series { label: label.into(), points, errors: None, style: Style::Line, color }
+    }
+    pub fn dashed(label: impl Into<String>, points: Vec<(f64, f64)>, color: usize) -> Self {
+        Series { style: Style::Dashed, ..Self::line(label, points, color) }
+    }
+    pub fn points(label: impl Into<String>, points: Vec<(f64, f64)>, errors: Option<Vec<f64>>, color: usize) -> Self {
+        Series { label: label.into(), points, errors, style: Style::Points, color }
+    }
+}
+
+/// Axes of a chart.
+#[derive(Clone, Debug)]
+pub struct Axes {
+    pub title: String,
+    pub x_label: String,
+    pub y_label: String,
+    pub log_x: bool,
+    pub log_y: bool,
+}
+
+const PALETTE: [RGBColor; 8] = [
+    RGBColor(31, 119, 180),
+    RGBColor(214, 39, 40),
+    RGBColor(44, 160, 44),
+    RGBColor(255, 127, 14),
+    RGBColor(148, 103, 189),
+    RGBColor(140, 86, 75),
+    RGBColor(227, 119, 194),
+    RGBColor(23, 190, 207),
+];
+
+fn range(v: impl Iterator<Item = f64>, log: bool) -> (f64, f64) {
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    for x in v.filter(|x| x.is_finite() && (!log || *x > 0.0)) {
+        lo = lo.min(x);
+        hi = hi.max(x);
+    }
+    if !lo.is_finite() {
+        return (if log { 1e-3 } else { 0.0 }, 1.0);
+    }
+    if log {
+        (lo / 1.5, hi * 1.5)
+    } else {
+        let pad = 0.05 * (hi - lo).max(1e-12);
+        (lo - pad, hi + pad)
+    }
+}
+
+/// Draws an x–y chart to `path` (PNG, 900×600).
+pub fn chart(path: &Path, axes: &Axes, series: &[Series]) -> Result<()> {
+    let xs = series.iter().flat_map(|s| s.points.iter().map(|p| p.0));
+    let ys = series.iter().flat_map(|s| s.points.iter().map(|p| p.1));
+    let (x0, x1) = range(xs, axes.log_x);
+    let (y0, y1) = range(ys, axes.log_y);
     let tmp = crate::io::temp_sibling(path);
     let draw = || -> std::result::Result<(), Box<dyn std::error::Error>> {
         let root = BitMapBackend::new(&tmp, (900, 600)).into_drawing_area();
         root.fill(&WHITE)?;
-        let mut chart = ChartBuilder::on(&root)
-            .caption(title, ("sans-serif", 20))
-            .margin(15)
-            .x_label_area_size(45)
-            .y_label_area_size(70)
-            .build_cartesian_2d(
-                (b.edges[1]..*b.edges.last().unwrap_or(&100.0)).log_scale(),
-                (ymin..ymax).log_scale(),
-            )?;
-        chart
-            .configure_mesh()
-            .x_desc("r (MFP)")
-            .y_desc("p(r) (1/MFP)")
-            .x_label_formatter(&|x| format!("{x:.0e}"))
-            .y_label_formatter(&|y| format!("{y:.0e}"))
-            .draw()?;
-        for (data, color, label) in [
-            (&single, BLUE, "R₁ (single)"),
-            (&multi, RED, "Rₘ (multiple)"),
-        ] {
-            chart
-                .draw_series(LineSeries::new(
-                    data.iter().map(|p| (p.0, p.1)),
-                    color.stroke_width(2),
-                ))?
-                .label(label)
-                .legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
-                });
-            chart.draw_series(data.iter().filter(|p| p.1 > p.2).map(|p| {
-                ErrorBar::new_vertical(p.0, p.1 - p.2, p.1, p.1 + p.2, color.filled(), 4)
-            }))?;
+        macro_rules! builder {
+            () => {
+                ChartBuilder::on(&root)
+                    .caption(&axes.title, ("sans-serif", 20))
+                    .margin(15)
+                    .x_label_area_size(45)
+                    .y_label_area_size(75)
+            };
         }
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .draw()?;
+        macro_rules! body {
+            ($chart:expr) => {{
+                let mut chart = $chart;
+                chart
+                    .configure_mesh()
+                    .x_desc(axes.x_label.as_str())
+                    .y_desc(axes.y_label.as_str())
+                    .x_label_formatter(&|x| fmt_tick(*x, axes.log_x))
+                    .y_label_formatter(&|y| fmt_tick(*y, axes.log_y))
+                    .draw()?;
+                for s in series {
+                    let color = PALETTE[s.color % PALETTE.len()];
+                    let pts: Vec<(f64, f64)> = s
+                        .points
+                        .iter()
+                        .cloned()
+                        .filter(|p| p.0.is_finite() && p.1.is_finite() && (!axes.log_x || p.0 > 0.0) && (!axes.log_y || p.1 > 0.0))
+                        .collect();
+                    let anno = match s.style {
+                        Style::Line => chart.draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))?,
+                        Style::Dashed => chart.draw_series(DashedLineSeries::new(pts.clone(), 6, 4, color.stroke_width(2)))?,
+                        Style::Points => chart.draw_series(pts.iter().map(|p| Circle::new(*p, 3, color.filled())))?,
+                    };
+                    if !s.label.is_empty() {
+                        anno.label(s.label.as_str()).legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+                    }
+                    if let Some(err) = &s.errors {
+                        let bars = s.points.iter().zip(err).filter(|(p, e)| p.1.is_finite() && e.is_finite() && (!axes.log_y || p.1 - **e > 0.0));
+                        chart.draw_series(bars.map(|(p, e)| ErrorBar::new_vertical(p.0, p.1 - e, p.1, p.1 + e, color.filled(), 4)))?;
+                    }
+                }
+                chart.configure_series_labels().background_style(WHITE.mix(0.85)).border_style(BLACK).draw()?;
+            }};
+        }
+        match (axes.log_x, axes.log_y) {
+            (true, true) => body!(builder!().build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())?),
+            (true, false) => body!(builder!().build_cartesian_2d((x0..x1).log_scale(), y0..y1)?),
+            (false, true) => body!(builder!().build_cartesian_2d(x0..x1, (y0..y1).log_scale())?),
+            (false, false) => body!(builder!().build_cartesian_2d(x0..x1, y0..y1)?),
+        }
         root.present()?;
         Ok(())
     };
@@ -81,4 +142,38 @@ pub fn profile_plot(doc: &ProfileDoc, path: &Path) -> Result<()> {
         Error::format(path, "(plot)", e)
     })?;
     crate::io::commit(&tmp, path)
+}
+
+fn fmt_tick(v: f64, log: bool) -> String {
+    if log || (v != 0.0 && (v.abs() < 1e-2 || v.abs() >= 1e4)) { format!("{v:.0e}") } else { format!("{v:.3}").trim_end_matches('0').trim_end_matches('.').to_string() }
+}
+
+/// Geometric bin centres and the points of a ring-average array (inner disk
+/// and empty bins skipped).
+pub fn ring_points(edges: &[f64], v: &[f64], e: &[f64]) -> (Vec<(f64, f64)>, Vec<f64>) {
+    (1..v.len())
+        .filter(|&k| v[k] > 0.0)
+        .map(|k| (((edges[k] * edges[k + 1]).sqrt(), v[k]), e[k]))
+        .unzip()
+}
+
+/// Log-log plot of the radial density p(r) = 2πr·R(r) of a profile, split
+/// into single (R₁) and multiple (Rₘ) scattering, with ±1 standard errors.
+pub fn profile_plot(doc: &ProfileDoc, path: &Path) -> Result<()> {
+    let b = &doc.bins;
+    let (p1, e1) = ring_points(&b.edges, &b.p_1, &b.p_1_stderr);
+    let (pm, em) = ring_points(&b.edges, &b.p_m, &b.p_m_stderr);
+    let m = &doc.config.medium;
+    let axes = Axes {
+        title: format!("p(r) = 2πr·R(r): α = {}, g = {}, η = {}, {} paths", m.alpha, m.g, m.eta, doc.paths),
+        x_label: "r (MFP)".into(),
+        y_label: "p(r) (1/MFP)".into(),
+        log_x: true,
+        log_y: true,
+    };
+    chart(
+        path,
+        &axes,
+        &[Series::points("R₁ (single)", p1, Some(e1), 0), Series::points("Rₘ (multiple)", pm, Some(em), 1)],
+    )
 }

@@ -1,0 +1,235 @@
+//! The least-squares layer: every fit in svkernel is a
+//! [`levenberg_marquardt::LeastSquaresProblem`] solved by [`solve`], which
+//! returns the solved problem with a [`FitReport`] — never a silent result.
+//!
+//! Conventions shared by every problem (style rule 6):
+//! * parameters live in unconstrained space (logarithms of positive
+//!   quantities), so any parameter vector is a valid model;
+//! * residuals are weighted by the data's standard errors,
+//!   r_j = (model_j − y_j)/σ_j, so the cost 2·f = Σ r_j² is a χ²;
+//! * Jacobians are exact (analytic) and checked against
+//!   [`levenberg_marquardt::differentiate_numerically`] in each module's tests.
+
+use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
+use nalgebra::{DVector, Dyn, Owned};
+use serde::{Deserialize, Serialize};
+use std::ops::Range;
+use std::time::Instant;
+
+/// Errors of a fit.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum FitError {
+    /// The optimiser stopped without meeting a convergence criterion.
+    #[error("{what}: Levenberg–Marquardt did not converge ({termination}) after {evaluations} evaluations, χ²/dof = {chi2_per_dof:.4}")]
+    NotConverged {
+        what: String,
+        termination: String,
+        evaluations: usize,
+        chi2_per_dof: f64,
+    },
+    /// The data cannot be fitted (too few points, no signal).
+    #[error("{what}: {msg}")]
+    BadData { what: String, msg: String },
+}
+
+/// A problem whose residuals come in named blocks (e.g. one per albedo), for
+/// the per-block RMS of the report.
+pub trait Blocks {
+    /// `(name, residual index range)` of each block.
+    fn blocks(&self) -> Vec<(String, Range<usize>)>;
+}
+
+/// What a fit reports (style rule 7).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct FitReport {
+    /// What was fitted.
+    pub what: String,
+    /// Levenberg–Marquardt's termination reason.
+    pub termination: String,
+    pub success: bool,
+    /// Residual evaluations.
+    pub evaluations: usize,
+    /// χ² = Σ r_j² at the optimum.
+    pub chi2: f64,
+    /// Residuals minus parameters.
+    pub dof: usize,
+    pub chi2_per_dof: f64,
+    /// RMS of the weighted residuals per block.
+    pub block_rms: Vec<(String, f64)>,
+    pub wall_s: f64,
+}
+
+/// Solver settings.
+#[derive(Clone, Copy, Debug)]
+pub struct FitOptions {
+    /// Maximum evaluations, as a multiple of (parameters + 1).
+    pub patience: usize,
+    /// Relative tolerance of `ftol`, `xtol` (LM's defaults are 1e-15·…).
+    pub tol: f64,
+    /// Accept a fit that did not converge (the report says so).
+    pub allow_nonconvergence: bool,
+}
+
+impl Default for FitOptions {
+    fn default() -> Self {
+        FitOptions {
+            patience: 200,
+            tol: 1e-12,
+            allow_nonconvergence: false,
+        }
+    }
+}
+
+/// Solves `problem` from its current parameters.
+pub fn solve<P>(what: &str, problem: P, opts: &FitOptions) -> Result<(P, FitReport), FitError>
+where
+    P: LeastSquaresProblem<f64, Dyn, Dyn, ResidualStorage = Owned<f64, Dyn>> + Blocks,
+{
+    let start = Instant::now();
+    let lm = LevenbergMarquardt::new()
+        .with_ftol(opts.tol)
+        .with_xtol(opts.tol)
+        .with_gtol(1e-14)
+        .with_patience(opts.patience);
+    let (problem, report) = lm.minimize(problem);
+    let r = problem.residuals();
+    let chi2 = r.as_ref().map_or(f64::INFINITY, |r| r.norm_squared());
+    let n_params = problem.params().len();
+    let blocks = problem.blocks();
+    let n_res = blocks.iter().map(|b| b.1.end).max().unwrap_or(0);
+    let dof = n_res.saturating_sub(n_params).max(1);
+    let block_rms = blocks
+        .into_iter()
+        .map(|(name, range)| {
+            let n = range.len().max(1) as f64;
+            let s = r.as_ref().map_or(f64::NAN, |r| r.rows_range(range).norm_squared());
+            (name, (s / n).sqrt())
+        })
+        .collect();
+    let success = report.termination.was_successful()
+        // "No improvement possible" at our tight tolerance means the optimum
+        // is resolved to machine precision: a success for our purposes.
+        || matches!(report.termination, levenberg_marquardt::TerminationReason::NoImprovementPossible(_));
+    let rep = FitReport {
+        what: what.to_string(),
+        termination: format!("{:?}", report.termination),
+        success,
+        evaluations: report.number_of_evaluations,
+        chi2,
+        dof,
+        chi2_per_dof: chi2 / dof as f64,
+        block_rms,
+        wall_s: start.elapsed().as_secs_f64(),
+    };
+    if !rep.success && !opts.allow_nonconvergence || !chi2.is_finite() {
+        return Err(FitError::NotConverged {
+            what: what.to_string(),
+            termination: rep.termination,
+            evaluations: rep.evaluations,
+            chi2_per_dof: rep.chi2_per_dof,
+        });
+    }
+    Ok((problem, rep))
+}
+
+/// Largest relative difference between a problem's analytic Jacobian and a
+/// numerical one at its current parameters, relative to the column norm
+/// (test helper). The numerical Jacobian is a Richardson-extrapolated central
+/// difference of whole residual vectors (O(n) evaluations;
+/// `levenberg_marquardt::differentiate_numerically` re-evaluates all
+/// residuals per entry, O(m·n), too slow for the joint fits).
+pub fn jacobian_mismatch<P>(problem: &mut P) -> f64
+where
+    P: LeastSquaresProblem<f64, Dyn, Dyn, JacobianStorage = Owned<f64, Dyn, Dyn>, ParameterStorage = Owned<f64, Dyn>, ResidualStorage = Owned<f64, Dyn>>,
+{
+    let analytic = problem.jacobian().expect("jacobian");
+    let x0 = problem.params();
+    let mut numeric = analytic.clone();
+    for c in 0..x0.len() {
+        let h = 1e-4 * x0[c].abs().max(1.0);
+        let mut at = |dx: f64| {
+            let mut x = x0.clone();
+            x[c] += dx;
+            problem.set_params(&x);
+            problem.residuals().expect("residuals")
+        };
+        let d1 = (at(h) - at(-h)) / (2.0 * h);
+        let d2 = (at(h / 2.0) - at(-h / 2.0)) / h;
+        numeric.set_column(c, &((4.0 * d2 - d1) / 3.0));
+    }
+    problem.set_params(&x0);
+    let mut worst: f64 = 0.0;
+    for c in 0..analytic.ncols() {
+        let scale = numeric.column(c).norm().max(1e-300);
+        let diff = (analytic.column(c) - numeric.column(c)).norm();
+        worst = worst.max(diff / scale);
+    }
+    worst
+}
+
+/// Non-negative least squares: minimises ‖A x − b‖ subject to x ≥ 0 by the
+/// active-set method of Lawson & Hanson (1974, ch. 23). Used to initialise
+/// the linear amplitudes of exponential mixtures.
+pub fn nnls(a: &nalgebra::DMatrix<f64>, b: &DVector<f64>) -> DVector<f64> {
+    let n = a.ncols();
+    let mut x = DVector::zeros(n);
+    let mut passive = vec![false; n];
+    let tol = 1e-12 * a.norm() * b.norm().max(1e-300);
+    for _outer in 0..3 * n + 10 {
+        let w = a.transpose() * (b - a * &x);
+        let candidate = (0..n)
+            .filter(|&j| !passive[j] && w[j] > tol)
+            .max_by(|&i, &j| w[i].total_cmp(&w[j]));
+        let Some(j) = candidate else { break };
+        passive[j] = true;
+        for _inner in 0..3 * n + 10 {
+            let idx: Vec<usize> = (0..n).filter(|&k| passive[k]).collect();
+            let sub = a.select_columns(&idx);
+            let Some(z_p) = sub.clone().svd(true, true).solve(b, 1e-14).ok() else { break };
+            if z_p.iter().all(|&v| v > 0.0) {
+                for (t, &k) in idx.iter().enumerate() {
+                    x[k] = z_p[t];
+                }
+                break;
+            }
+            // Step back to the boundary and drop the variables that hit zero.
+            let mut step = 1.0f64;
+            for (t, &k) in idx.iter().enumerate() {
+                if z_p[t] <= 0.0 {
+                    step = step.min(x[k] / (x[k] - z_p[t]));
+                }
+            }
+            for (t, &k) in idx.iter().enumerate() {
+                x[k] += step * (z_p[t] - x[k]);
+                if x[k] <= 1e-300 {
+                    x[k] = 0.0;
+                    passive[k] = false;
+                }
+            }
+        }
+    }
+    x
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::DMatrix;
+
+    #[test]
+    fn nnls_matches_known_solution() {
+        // Unconstrained optimum has a negative component; NNLS clamps it and
+        // re-solves the rest.
+        let a = DMatrix::from_row_slice(4, 2, &[1.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0, -1.0]);
+        let b = DVector::from_vec(vec![2.0, -1.0, 1.0, 3.0]);
+        let x = nnls(&a, &b);
+        assert!(x.iter().all(|&v| v >= 0.0));
+        // With x1 = 0: minimise (x0−2)² + 1 + (x0−1)² + (x0−3)² → x0 = 2.
+        assert!((x[0] - 2.0).abs() < 1e-10 && x[1] == 0.0, "{x}");
+        // A positive problem is solved exactly.
+        let b2 = &a * DVector::from_vec(vec![0.5, 1.5]);
+        let x2 = nnls(&a, &b2);
+        assert!((x2[0] - 0.5).abs() < 1e-10 && (x2[1] - 1.5).abs() < 1e-10);
+    }
+}

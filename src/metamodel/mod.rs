@@ -1,0 +1,5 @@
+//! Pure models: parameters in, profile or kernel out (design §3 step 3).
+//! No I/O beyond (de)serialisation.
+
+pub mod basis;
+pub mod burley;
