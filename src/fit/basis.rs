@@ -18,7 +18,10 @@
 use super::exp_mixture::{BinnedDensity, Order, fit_mixture, safe_exp, theta_from_rate};
 use super::lm::{Blocks, FitError, FitOptions, FitReport, solve};
 use crate::forward::profile::ProfileDoc;
-use crate::metamodel::basis::{BASIS_FORMAT, BASIS_VERSION, BasisModel, ExpMixture, albedo_coordinate, chebyshev, component_bin, rate_from_theta};
+use crate::metamodel::basis::{
+    BASIS_FORMAT, BASIS_VERSION, BasisModel, ExpMixture, albedo_coordinate, chebyshev,
+    component_bin, rate_from_theta,
+};
 use levenberg_marquardt::LeastSquaresProblem;
 use nalgebra::{DMatrix, DVector, Dyn, Owned};
 
@@ -72,15 +75,30 @@ impl BasisFit<'_> {
         let nc = self.n_coef();
         let off = self.k * nc;
         let dot = |start: usize| (0..nc).map(|j| self.theta[start + j] * t[j]).sum::<f64>();
-        let a = (0..self.k).map(|k| alpha * alpha * safe_exp(dot(k * nc))).collect();
-        let (b, db) = (0..self.k).map(|k| rate_from_theta(dot(off + k * nc))).unzip();
+        let a = (0..self.k)
+            .map(|k| alpha * alpha * safe_exp(dot(k * nc)))
+            .collect();
+        let (b, db) = (0..self.k)
+            .map(|k| rate_from_theta(dot(off + k * nc)))
+            .unzip();
         (a, b, db, t)
     }
 
     /// The model this parameter vector describes.
-    pub fn model(&self, single: ExpMixture, albedo_range: (f64, f64), eta: f64, g: f64, provenance: serde_json::Value) -> BasisModel {
+    pub fn model(
+        &self,
+        single: ExpMixture,
+        albedo_range: (f64, f64),
+        eta: f64,
+        g: f64,
+        provenance: serde_json::Value,
+    ) -> BasisModel {
         let nc = self.n_coef();
-        let rows = |start: usize| (0..self.k).map(|k| self.theta.as_slice()[start + k * nc..start + (k + 1) * nc].to_vec()).collect();
+        let rows = |start: usize| {
+            (0..self.k)
+                .map(|k| self.theta.as_slice()[start + k * nc..start + (k + 1) * nc].to_vec())
+                .collect()
+        };
         BasisModel {
             format: BASIS_FORMAT.into(),
             version: BASIS_VERSION,
@@ -122,7 +140,9 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for BasisFit<'_> {
             let (a, b, _, _) = self.components(p.alpha);
             let d = &p.multi;
             for j in 0..d.len() {
-                let m: f64 = (0..self.k).map(|k| component_bin(a[k], b[k], 1, d.lo[j], d.hi[j]).0).sum();
+                let m: f64 = (0..self.k)
+                    .map(|k| component_bin(a[k], b[k], 1, d.lo[j], d.hi[j]).0)
+                    .sum();
                 r[row] = (m - d.y[j]) / d.sigma[j];
                 row += 1;
             }
@@ -191,7 +211,10 @@ fn poly_fit(t: &[f64], y: &[f64], w: &[f64], degree: usize) -> Vec<f64> {
         }
     }
     let rhs = DVector::from_iterator(n, (0..n).map(|i| y[i] * w[i].sqrt()));
-    let c = design.svd(true, true).solve(&rhs, 1e-12).unwrap_or_else(|_| DVector::zeros(degree + 1));
+    let c = design
+        .svd(true, true)
+        .solve(&rhs, 1e-12)
+        .unwrap_or_else(|_| DVector::zeros(degree + 1));
     c.iter().cloned().collect()
 }
 
@@ -224,28 +247,59 @@ pub struct BasisFitOutcome {
 
 /// Fits the smooth model with `k` components and polynomial `degree` to
 /// `docs` (all of one medium and illumination).
-pub fn fit_basis(docs: &[ProfileDoc], k: usize, degree: usize, opts: &FitOptions, provenance: serde_json::Value) -> Result<BasisFitOutcome, FitError> {
-    let bad = |msg: String| FitError::BadData { what: "basis".into(), msg };
+pub fn fit_basis(
+    docs: &[ProfileDoc],
+    k: usize,
+    degree: usize,
+    opts: &FitOptions,
+    provenance: serde_json::Value,
+) -> Result<BasisFitOutcome, FitError> {
+    let bad = |msg: String| FitError::BadData {
+        what: "basis".into(),
+        msg,
+    };
     if docs.len() < degree + 2 {
-        return Err(bad(format!("{} profiles: need at least degree + 2 = {}", docs.len(), degree + 2)));
+        return Err(bad(format!(
+            "{} profiles: need at least degree + 2 = {}",
+            docs.len(),
+            degree + 2
+        )));
     }
     let c0 = &docs[0].config;
-    if let Some(d) = docs.iter().find(|d| d.config.medium.eta != c0.medium.eta || d.config.medium.g != c0.medium.g || d.config.source != c0.source || d.config.bins != c0.bins) {
-        return Err(bad(format!("profile at α = {} has another medium, source or binning than the first", d.config.medium.alpha)));
+    if let Some(d) = docs.iter().find(|d| {
+        d.config.medium.eta != c0.medium.eta
+            || d.config.medium.g != c0.medium.g
+            || d.config.source != c0.source
+            || d.config.bins != c0.bins
+    }) {
+        return Err(bad(format!(
+            "profile at α = {} has another medium, source or binning than the first",
+            d.config.medium.alpha
+        )));
     }
     let mut data: Vec<TrainingProfile> = docs.iter().map(TrainingProfile::from_doc).collect();
     data.sort_by(|a, b| a.alpha.total_cmp(&b.alpha));
 
     // Single scattering at α = 1, pooled over all profiles.
     let pooled = pooled_single(&data);
-    let (single, single_rep) = fit_mixture("single scattering p1(r; 1)", &pooled, k.min(4), 0, opts)?;
+    let (single, single_rep) =
+        fit_mixture("single scattering p1(r; 1)", &pooled, k.min(4), 0, opts)?;
 
     // Per-profile fits: diagnostics for the report (a failure is recorded
     // there, not fatal: the smooth model does not start from them).
-    let lenient = FitOptions { allow_nonconvergence: true, ..*opts };
+    let lenient = FitOptions {
+        allow_nonconvergence: true,
+        ..*opts
+    };
     let mut per_profile = Vec::new();
     for p in &data {
-        let (m, rep) = fit_mixture(&format!("p_m(r; α = {:.6})", p.alpha), &p.multi, k, 1, &lenient)?;
+        let (m, rep) = fit_mixture(
+            &format!("p_m(r; α = {:.6})", p.alpha),
+            &p.multi,
+            k,
+            1,
+            &lenient,
+        )?;
         per_profile.push((p.alpha, m, rep));
     }
 
@@ -253,7 +307,10 @@ pub fn fit_basis(docs: &[ProfileDoc], k: usize, degree: usize, opts: &FitOptions
     // Components sorted by rate at every albedo; rank k is followed across
     // albedos, and polynomials in t are fitted to ln(A_k/α²) and to the
     // bounded-rate parameter θ_k, weighted by the component's energy share.
-    let ts: Vec<f64> = data.iter().map(|p| 2.0 * albedo_coordinate(p.alpha) - 1.0).collect();
+    let ts: Vec<f64> = data
+        .iter()
+        .map(|p| 2.0 * albedo_coordinate(p.alpha) - 1.0)
+        .collect();
     let nc = degree + 1;
     let mut theta = DVector::zeros(2 * k * nc);
     for kk in 0..k {
@@ -264,7 +321,10 @@ pub fn fit_basis(docs: &[ProfileDoc], k: usize, degree: usize, opts: &FitOptions
             yb.push(theta_from_rate(m.b[kk]));
             w.push(share + 1e-3);
         }
-        let (ca, cb) = (poly_fit(&ts, &ya, &w, degree), poly_fit(&ts, &yb, &w, degree));
+        let (ca, cb) = (
+            poly_fit(&ts, &ya, &w, degree),
+            poly_fit(&ts, &yb, &w, degree),
+        );
         for q in 0..nc {
             theta[kk * nc + q] = ca[q];
             theta[k * nc + kk * nc + q] = cb[q];
@@ -272,11 +332,23 @@ pub fn fit_basis(docs: &[ProfileDoc], k: usize, degree: usize, opts: &FitOptions
     }
 
     let r_sp = docs[0].R_sp;
-    let problem = BasisFit { data: &data, k, degree, single_energy: single.energy(), r_sp, theta };
+    let problem = BasisFit {
+        data: &data,
+        k,
+        degree,
+        single_energy: single.energy(),
+        r_sp,
+        theta,
+    };
     let (solved, joint) = solve("basis (joint, all albedos)", problem, opts)?;
     let range = (data[0].alpha, data[data.len() - 1].alpha);
     let model = solved.model(single, range, c0.medium.eta, c0.medium.g, provenance);
-    Ok(BasisFitOutcome { model, joint, single: single_rep, per_profile })
+    Ok(BasisFitOutcome {
+        model,
+        joint,
+        single: single_rep,
+        per_profile,
+    })
 }
 
 #[cfg(test)]
@@ -288,13 +360,24 @@ mod tests {
     /// Synthetic profiles from a known smooth model.
     fn synthetic_data() -> Vec<TrainingProfile> {
         let mut rng = PathRng::new(9, 0);
-        let edges: Vec<f64> = std::iter::once(0.0).chain((0..=100).map(|k| 1e-3 * 10f64.powf(k as f64 / 20.0))).collect();
+        let edges: Vec<f64> = std::iter::once(0.0)
+            .chain((0..=100).map(|k| 1e-3 * 10f64.powf(k as f64 / 20.0)))
+            .collect();
         (0..8)
             .map(|i| {
                 let alpha = 1.0 - (0.9 - 0.1 * i as f64).powi(2);
                 let x = (1.0 - alpha).sqrt();
-                let m = ExpMixture { a: vec![0.3 * alpha * alpha, 0.05 * alpha * alpha], b: vec![5.0 + x, 0.3 + 2.0 * x], power: 1 };
-                let mut d = BinnedDensity { lo: vec![], hi: vec![], y: vec![], sigma: vec![] };
+                let m = ExpMixture {
+                    a: vec![0.3 * alpha * alpha, 0.05 * alpha * alpha],
+                    b: vec![5.0 + x, 0.3 + 2.0 * x],
+                    power: 1,
+                };
+                let mut d = BinnedDensity {
+                    lo: vec![],
+                    hi: vec![],
+                    y: vec![],
+                    sigma: vec![],
+                };
                 for w in edges.windows(2) {
                     let t = m.bin_mean(w[0], w[1]);
                     d.lo.push(w[0]);
@@ -302,7 +385,11 @@ mod tests {
                     d.y.push(t * (1.0 + 0.01 * (rng.uniform() - 0.5)));
                     d.sigma.push(0.01 * t + 1e-8);
                 }
-                TrainingProfile { alpha, multi: d.clone(), single: d }
+                TrainingProfile {
+                    alpha,
+                    multi: d.clone(),
+                    single: d,
+                }
             })
             .collect()
     }
@@ -313,8 +400,18 @@ mod tests {
         let mut rng = PathRng::new(4, 0);
         for _ in 0..3 {
             let (k, degree) = (2, 3);
-            let theta = DVector::from_iterator(2 * k * (degree + 1), (0..2 * k * (degree + 1)).map(|_| rng.uniform() - 0.5));
-            let mut p = BasisFit { data: &data, k, degree, single_energy: 0.05, r_sp: 0.04, theta };
+            let theta = DVector::from_iterator(
+                2 * k * (degree + 1),
+                (0..2 * k * (degree + 1)).map(|_| rng.uniform() - 0.5),
+            );
+            let mut p = BasisFit {
+                data: &data,
+                k,
+                degree,
+                single_energy: 0.05,
+                r_sp: 0.04,
+                theta,
+            };
             let err = jacobian_mismatch(&mut p);
             assert!(err < 1e-5, "relative Jacobian error {err}");
         }

@@ -1,0 +1,99 @@
+//! Throughput of the forward walk in scattering events per second: the f64
+//! scalar walk against the eight-lane f32 walk, on one thread and on all
+//! threads (rayon over chunks, merged in chunk order as the runner does).
+//!
+//! Medium: α ∈ {0.9, 0.99}, g = 0.3, η = 1.5, ρ = 1, half-space; pencil
+//! source; default bins and event cap. `cargo bench --bench forward`.
+
+use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
+use rayon::prelude::*;
+use std::hint::black_box;
+use std::time::Duration;
+use svkernel::forward::medium::{Medium, Source};
+use svkernel::forward::profile::{DEFAULT_MAX_EVENTS, Engine, ProfileConfig};
+use svkernel::forward::runner::CHUNK_PATHS;
+use svkernel::forward::simd::simulate_lanes;
+use svkernel::forward::tally::{ProfileTally, RadialBins};
+use svkernel::forward::walk::simulate_scalar;
+
+const SEED: u64 = 0x5EED;
+/// Paths of the single-thread benchmarks (one chunk).
+const PATHS_1: u64 = 1 << 14;
+/// Chunks of the all-threads benchmarks.
+const CHUNKS: u64 = 32;
+
+fn config(alpha: f64, engine: Engine) -> ProfileConfig {
+    ProfileConfig {
+        medium: Medium::new(alpha, 0.3, 1.5, 1.0, None).unwrap(),
+        source: Source::Pencil,
+        paths: CHUNKS * CHUNK_PATHS,
+        seed: SEED,
+        max_events: DEFAULT_MAX_EVENTS,
+        bins: RadialBins::default(),
+        engine,
+    }
+}
+
+/// All chunks of `cfg` in parallel, merged in chunk order.
+fn all_threads(cfg: &ProfileConfig) -> ProfileTally {
+    let parts: Vec<ProfileTally> = (0..CHUNKS)
+        .into_par_iter()
+        .map(|c| cfg.simulate_chunk(c))
+        .collect();
+    let mut total = ProfileTally::new(&cfg.bins);
+    for p in &parts {
+        total.merge(p);
+    }
+    total
+}
+
+fn one_thread(cfg: &ProfileConfig) -> ProfileTally {
+    let f = match cfg.engine {
+        Engine::Scalar => simulate_scalar,
+        Engine::Lanes => simulate_lanes,
+    };
+    f(
+        &cfg.medium,
+        &cfg.source,
+        &cfg.bins,
+        cfg.max_events,
+        cfg.seed,
+        0,
+        PATHS_1,
+    )
+}
+
+fn forward(c: &mut Criterion) {
+    let mut group = c.benchmark_group("forward");
+    group
+        .sample_size(10)
+        .measurement_time(Duration::from_secs(5))
+        .warm_up_time(Duration::from_secs(1));
+    for alpha in [0.9, 0.99] {
+        for (name, engine, threads) in [
+            ("scalar_1thread", Engine::Scalar, false),
+            ("lanes_1thread", Engine::Lanes, false),
+            ("scalar_all_threads", Engine::Scalar, true),
+            ("lanes_all_threads", Engine::Lanes, true),
+        ] {
+            let cfg = config(alpha, engine);
+            let run = |cfg: &ProfileConfig| {
+                if threads {
+                    all_threads(cfg)
+                } else {
+                    one_thread(cfg)
+                }
+            };
+            // Throughput in scattering events of this exact input.
+            let events = run(&cfg).events;
+            group.throughput(Throughput::Elements(events));
+            group.bench_with_input(BenchmarkId::new(name, alpha), &cfg, |b, cfg| {
+                b.iter(|| black_box(run(black_box(cfg))))
+            });
+        }
+    }
+    group.finish();
+}
+
+criterion_group!(benches, forward);
+criterion_main!(benches);
