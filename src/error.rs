@@ -7,7 +7,8 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum Error {
-    /// A parameter outside its domain (e.g. `--albedo 1.2`).
+    /// A parameter outside its domain (e.g. `--albedo 1.2`); `name` is the
+    /// command-line flag that sets it.
     #[error("invalid {name} = {value}: must be {allowed}")]
     Param {
         name: &'static str,

@@ -86,6 +86,18 @@ enum Fit {
         #[arg(long, default_value_t = 5)]
         degree: usize,
     },
+    /// Export one profile's multiple-scattering fit problem and LM's optimum
+    /// (for tools/nlopt_check.py).
+    Export {
+        #[arg(long)]
+        albedo: f64,
+        #[arg(long = "in", default_value = DEFAULT_PROFILES)]
+        input: PathBuf,
+        #[arg(long, default_value_t = 6)]
+        components: usize,
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Accuracy of a basis model against a directory of (fresh) profiles.
     Check {
         #[arg(long, default_value = DEFAULT_BASIS)]
@@ -230,23 +242,33 @@ fn write_doc(doc: &ProfileDoc, out: &std::path::Path, npy: bool) -> Result<()> {
     Ok(())
 }
 
+/// Prints the summary of a written profile. A closed stdout (e.g. `| head -1`)
+/// is not an error: the result is already on disk.
 fn print_summary(doc: &ProfileDoc) {
-    println!(
-        "R_d = {:.6} ± {:.6}   R_1 = {:.6} ± {:.6}   R_m = {:.6} ± {:.6}",
-        doc.R_d, doc.R_d_stderr, doc.R_1, doc.R_1_stderr, doc.R_m, doc.R_m_stderr
-    );
-    println!(
-        "energy balance: R_d {:.6} + R_sp {:.6} + absorbed {:.6} + transmitted {:.6} + truncated {:.2e} = {:.9}",
-        doc.R_d, doc.R_sp, doc.absorbed, doc.transmitted, doc.truncated, doc.energy_balance
-    );
-    println!(
-        "{} paths, {} scattering events ({:.1} per path), {:.2} s, {:.3e} events/s",
+    use std::io::Write;
+    let text = format!(
+        "R_d = {:.6} ± {:.6}   R_1 = {:.6} ± {:.6}   R_m = {:.6} ± {:.6}\n\
+         energy balance: R_d {:.6} + R_sp {:.6} + absorbed {:.6} + transmitted {:.6} + truncated {:.2e} = {:.9}\n\
+         {} paths, {} scattering events ({:.1} per path), {:.2} s, {:.3e} events/s\n",
+        doc.R_d,
+        doc.R_d_stderr,
+        doc.R_1,
+        doc.R_1_stderr,
+        doc.R_m,
+        doc.R_m_stderr,
+        doc.R_d,
+        doc.R_sp,
+        doc.absorbed,
+        doc.transmitted,
+        doc.truncated,
+        doc.energy_balance,
         doc.paths,
         doc.events,
         doc.mean_events,
         doc.wall_s,
         doc.events as f64 / doc.wall_s.max(1e-9)
     );
+    let _ = std::io::stdout().lock().write_all(text.as_bytes());
 }
 
 fn merge(inputs: Vec<PathBuf>, out: PathBuf) -> Result<()> {
@@ -282,21 +304,64 @@ fn demo(out: PathBuf, paths: u64) -> Result<()> {
 fn fit(f: Fit) -> Result<()> {
     use svkernel::fit::report;
     match f {
-        Fit::Profiles { input, out, report: dir, components, degree } => {
+        Fit::Profiles {
+            input,
+            out,
+            report: dir,
+            components,
+            degree,
+        } => {
             if !(1..=12).contains(&components) {
                 bail!("invalid components = {components}: must be in 1..=12");
             }
             if degree > 10 {
                 bail!("invalid degree = {degree}: must be <= 10");
             }
-            let dir = dir.unwrap_or_else(|| out.parent().unwrap_or(std::path::Path::new(".")).join("basis_report"));
+            let dir = dir.unwrap_or_else(|| {
+                out.parent()
+                    .unwrap_or(std::path::Path::new("."))
+                    .join("basis_report")
+            });
             let r = report::fit_profiles(&input, &out, &dir, components, degree)?;
             println!("{}", report::markdown_table(&r.training_accuracy));
             println!(
                 "joint fit: {} after {} evaluations, χ²/dof = {:.3}; R_d(α=1) = {:.5} (target {:.5}); {:.1} s",
-                r.joint.termination, r.joint.evaluations, r.joint.chi2_per_dof, r.rd_at_one.0, r.rd_at_one.1, r.wall_s
+                r.joint.termination,
+                r.joint.evaluations,
+                r.joint.chi2_per_dof,
+                r.rd_at_one.0,
+                r.rd_at_one.1,
+                r.wall_s
             );
-            println!("wrote {} and {}/report.json + plots", out.display(), dir.display());
+            println!(
+                "wrote {} and {}/report.json + plots",
+                out.display(),
+                dir.display()
+            );
+        }
+        Fit::Export {
+            albedo,
+            input,
+            components,
+            out,
+        } => {
+            let docs = report::load_profiles(&input)?;
+            let Some(doc) = docs.iter().min_by(|a, b| {
+                (a.config.medium.alpha - albedo)
+                    .abs()
+                    .total_cmp(&(b.config.medium.alpha - albedo).abs())
+            }) else {
+                bail!("no profiles in {}", input.display());
+            };
+            let v = report::export_problem(doc, components)?;
+            svkernel::io::write_json_atomic(&out, &v)?;
+            println!(
+                "exported α = {} ({} bins, χ² = {}) to {}",
+                doc.config.medium.alpha,
+                v["y"].as_array().map_or(0, |a| a.len()),
+                v["chi2"],
+                out.display()
+            );
         }
         Fit::Check { model, input, out } => {
             let m = svkernel::metamodel::basis::BasisModel::load(&model)?;
@@ -312,7 +377,7 @@ fn fit(f: Fit) -> Result<()> {
 
 fn profile_query(albedo: f64, radii: &[f64], model: &std::path::Path) -> Result<()> {
     if !(0.0..=1.0).contains(&albedo) {
-        bail!("invalid albedo = {albedo}: must be in [0, 1]");
+        bail!("invalid --albedo = {albedo}: must be in [0, 1]");
     }
     if let Some(r) = radii.iter().find(|r| !(**r >= 0.0 && r.is_finite())) {
         bail!("invalid radii: {r} must be finite and >= 0");
@@ -340,7 +405,12 @@ fn main() -> std::process::ExitCode {
         Command::Merge { inputs, out } => merge(inputs, out),
         Command::Demo { out, paths } => demo(out, paths),
         Command::Fit(f) => fit(f),
-        Command::Profile { albedo, radii, model, json: _ } => profile_query(albedo, &radii, &model),
+        Command::Profile {
+            albedo,
+            radii,
+            model,
+            json: _,
+        } => profile_query(albedo, &radii, &model),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -35,14 +35,14 @@ fn out_of_domain_parameters_fail_cleanly() {
     let d = tmpdir("domain");
     let out = d.join("x.json");
     for (args, flag) in [
-        (vec!["--albedo", "1.5"], "albedo"),
-        (vec!["--albedo", "0.5", "--g", "1"], "g"),
-        (vec!["--albedo", "0.5", "--eta", "0.5"], "eta"),
-        (vec!["--albedo", "0.5", "--density", "-1"], "density"),
-        (vec!["--albedo", "0.5", "--source", "laser"], "source"),
-        (vec!["--albedo", "0.5", "--shard", "3/3"], "shard"),
-        (vec!["--albedo", "0.5", "--paths", "1.5"], "paths"),
-        (vec!["--albedo", "0.5", "--thickness", "0"], "thickness"),
+        (vec!["--albedo", "1.5"], "--albedo"),
+        (vec!["--albedo", "0.5", "--g", "1"], "--g"),
+        (vec!["--albedo", "0.5", "--eta", "0.5"], "--eta"),
+        (vec!["--albedo", "0.5", "--density", "-1"], "--density"),
+        (vec!["--albedo", "0.5", "--source", "laser"], "--source"),
+        (vec!["--albedo", "0.5", "--shard", "3/3"], "--shard"),
+        (vec!["--albedo", "0.5", "--paths", "1.5"], "--paths"),
+        (vec!["--albedo", "0.5", "--thickness", "0"], "--thickness"),
     ] {
         let o = profile(&args, &out);
         let err = String::from_utf8_lossy(&o.stderr);

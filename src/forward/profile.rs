@@ -54,10 +54,10 @@ impl ProfileConfig {
             self.medium.thickness,
         )?;
         if self.paths == 0 {
-            return Err(Error::param("paths", 0, ">= 1"));
+            return Err(Error::param("--paths", 0, ">= 1"));
         }
         if self.max_events == 0 {
-            return Err(Error::param("max-events", 0, ">= 1"));
+            return Err(Error::param("--max-events", 0, ">= 1"));
         }
         let b = &self.bins;
         if !(b.r_min > 0.0 && b.r_max > b.r_min && b.r_max.is_finite() && b.per_decade > 0) {
