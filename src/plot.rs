@@ -27,13 +27,33 @@ pub struct Series {
 
 impl Series {
     pub fn line(label: impl Into<String>, points: Vec<(f64, f64)>, color: usize) -> Self {
-        Series { label: label.into(), points, errors: None, style: Style::Line, color }
+        Series {
+            label: label.into(),
+            points,
+            errors: None,
+            style: Style::Line,
+            color,
+        }
     }
     pub fn dashed(label: impl Into<String>, points: Vec<(f64, f64)>, color: usize) -> Self {
-        Series { style: Style::Dashed, ..Self::line(label, points, color) }
+        Series {
+            style: Style::Dashed,
+            ..Self::line(label, points, color)
+        }
     }
-    pub fn points(label: impl Into<String>, points: Vec<(f64, f64)>, errors: Option<Vec<f64>>, color: usize) -> Self {
-        Series { label: label.into(), points, errors, style: Style::Points, color }
+    pub fn points(
+        label: impl Into<String>,
+        points: Vec<(f64, f64)>,
+        errors: Option<Vec<f64>>,
+        color: usize,
+    ) -> Self {
+        Series {
+            label: label.into(),
+            points,
+            errors,
+            style: Style::Points,
+            color,
+        }
     }
 }
 
@@ -110,26 +130,50 @@ pub fn chart(path: &Path, axes: &Axes, series: &[Series]) -> Result<()> {
                         .points
                         .iter()
                         .cloned()
-                        .filter(|p| p.0.is_finite() && p.1.is_finite() && (!axes.log_x || p.0 > 0.0) && (!axes.log_y || p.1 > 0.0))
+                        .filter(|p| {
+                            p.0.is_finite()
+                                && p.1.is_finite()
+                                && (!axes.log_x || p.0 > 0.0)
+                                && (!axes.log_y || p.1 > 0.0)
+                        })
                         .collect();
                     let anno = match s.style {
-                        Style::Line => chart.draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))?,
-                        Style::Dashed => chart.draw_series(DashedLineSeries::new(pts.clone(), 6, 4, color.stroke_width(2)))?,
-                        Style::Points => chart.draw_series(pts.iter().map(|p| Circle::new(*p, 3, color.filled())))?,
+                        Style::Line => chart
+                            .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))?,
+                        Style::Dashed => chart.draw_series(DashedLineSeries::new(
+                            pts.clone(),
+                            6,
+                            4,
+                            color.stroke_width(2),
+                        ))?,
+                        Style::Points => chart
+                            .draw_series(pts.iter().map(|p| Circle::new(*p, 3, color.filled())))?,
                     };
                     if !s.label.is_empty() {
-                        anno.label(s.label.as_str()).legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+                        anno.label(s.label.as_str()).legend(move |(x, y)| {
+                            PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+                        });
                     }
                     if let Some(err) = &s.errors {
-                        let bars = s.points.iter().zip(err).filter(|(p, e)| p.1.is_finite() && e.is_finite() && (!axes.log_y || p.1 - **e > 0.0));
-                        chart.draw_series(bars.map(|(p, e)| ErrorBar::new_vertical(p.0, p.1 - e, p.1, p.1 + e, color.filled(), 4)))?;
+                        let bars = s.points.iter().zip(err).filter(|(p, e)| {
+                            p.1.is_finite() && e.is_finite() && (!axes.log_y || p.1 - **e > 0.0)
+                        });
+                        chart.draw_series(bars.map(|(p, e)| {
+                            ErrorBar::new_vertical(p.0, p.1 - e, p.1, p.1 + e, color.filled(), 4)
+                        }))?;
                     }
                 }
-                chart.configure_series_labels().background_style(WHITE.mix(0.85)).border_style(BLACK).draw()?;
+                chart
+                    .configure_series_labels()
+                    .background_style(WHITE.mix(0.85))
+                    .border_style(BLACK)
+                    .draw()?;
             }};
         }
         match (axes.log_x, axes.log_y) {
-            (true, true) => body!(builder!().build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())?),
+            (true, true) => {
+                body!(builder!().build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())?)
+            }
             (true, false) => body!(builder!().build_cartesian_2d((x0..x1).log_scale(), y0..y1)?),
             (false, true) => body!(builder!().build_cartesian_2d(x0..x1, (y0..y1).log_scale())?),
             (false, false) => body!(builder!().build_cartesian_2d(x0..x1, y0..y1)?),
@@ -145,7 +189,14 @@ pub fn chart(path: &Path, axes: &Axes, series: &[Series]) -> Result<()> {
 }
 
 fn fmt_tick(v: f64, log: bool) -> String {
-    if log || (v != 0.0 && (v.abs() < 1e-2 || v.abs() >= 1e4)) { format!("{v:.0e}") } else { format!("{v:.3}").trim_end_matches('0').trim_end_matches('.').to_string() }
+    if log || (v != 0.0 && (v.abs() < 1e-2 || v.abs() >= 1e4)) {
+        format!("{v:.0e}")
+    } else {
+        format!("{v:.3}")
+            .trim_end_matches('0')
+            .trim_end_matches('.')
+            .to_string()
+    }
 }
 
 /// Geometric bin centres and the points of a ring-average array (inner disk
@@ -165,7 +216,10 @@ pub fn profile_plot(doc: &ProfileDoc, path: &Path) -> Result<()> {
     let (pm, em) = ring_points(&b.edges, &b.p_m, &b.p_m_stderr);
     let m = &doc.config.medium;
     let axes = Axes {
-        title: format!("p(r) = 2πr·R(r): α = {}, g = {}, η = {}, {} paths", m.alpha, m.g, m.eta, doc.paths),
+        title: format!(
+            "p(r) = 2πr·R(r): α = {}, g = {}, η = {}, {} paths",
+            m.alpha, m.g, m.eta, doc.paths
+        ),
         x_label: "r (MFP)".into(),
         y_label: "p(r) (1/MFP)".into(),
         log_x: true,
@@ -174,6 +228,9 @@ pub fn profile_plot(doc: &ProfileDoc, path: &Path) -> Result<()> {
     chart(
         path,
         &axes,
-        &[Series::points("R₁ (single)", p1, Some(e1), 0), Series::points("Rₘ (multiple)", pm, Some(em), 1)],
+        &[
+            Series::points("R₁ (single)", p1, Some(e1), 0),
+            Series::points("Rₘ (multiple)", pm, Some(em), 1),
+        ],
     )
 }

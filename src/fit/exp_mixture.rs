@@ -51,7 +51,12 @@ impl BinnedDensity {
         let weight = crate::forward::walk::entry_weight(&doc.config.source, doc.config.medium.eta);
         let power = doc.config.source.power();
         let n = doc.paths.max(1) as f64;
-        let mut out = BinnedDensity { lo: vec![], hi: vec![], y: vec![], sigma: vec![] };
+        let mut out = BinnedDensity {
+            lo: vec![],
+            hi: vec![],
+            y: vec![],
+            sigma: vec![],
+        };
         for k in 0..y.len() {
             let (lo, hi) = (b.edges[k], b.edges[k + 1]);
             let one_count = power * weight / (n * (hi - lo));
@@ -65,7 +70,10 @@ impl BinnedDensity {
             Order::Single => &doc.tally.exit_single,
             Order::Multi => &doc.tally.exit_multi,
         };
-        let norm = crate::forward::tally::Normalizer { paths: doc.tally.paths, weight };
+        let norm = crate::forward::tally::Normalizer {
+            paths: doc.tally.paths,
+            weight,
+        };
         let tail = norm.fraction(*counts.last().unwrap_or(&0));
         out.lo.push(*b.edges.last().unwrap_or(&0.0));
         out.hi.push(f64::INFINITY);
@@ -85,7 +93,11 @@ impl BinnedDensity {
 
     /// Width of bin j; 1 for the tail bin, whose y is an energy.
     pub fn width(&self, j: usize) -> f64 {
-        if self.hi[j].is_finite() { self.hi[j] - self.lo[j] } else { 1.0 }
+        if self.hi[j].is_finite() {
+            self.hi[j] - self.lo[j]
+        } else {
+            1.0
+        }
     }
 
     /// Energy ∫p of the data (Σ y_j Δ_j).
@@ -97,8 +109,17 @@ impl BinnedDensity {
     /// lower edge).
     pub fn mean_radius(&self) -> f64 {
         let e = self.energy().max(1e-300);
-        let mid = |j: usize| if self.hi[j].is_finite() { 0.5 * (self.lo[j] + self.hi[j]) } else { self.lo[j] };
-        (0..self.len()).map(|j| self.y[j] * self.width(j) * mid(j)).sum::<f64>() / e
+        let mid = |j: usize| {
+            if self.hi[j].is_finite() {
+                0.5 * (self.lo[j] + self.hi[j])
+            } else {
+                self.lo[j]
+            }
+        };
+        (0..self.len())
+            .map(|j| self.y[j] * self.width(j) * mid(j))
+            .sum::<f64>()
+            / e
     }
 }
 
@@ -134,7 +155,9 @@ impl ExpMixtureFit<'_> {
         let k = self.k();
         ExpMixture {
             a: (0..k).map(|i| safe_exp(self.theta[i])).collect(),
-            b: (0..k).map(|i| rate_from_theta(self.theta[k + i]).0).collect(),
+            b: (0..k)
+                .map(|i| rate_from_theta(self.theta[k + i]).0)
+                .collect(),
             power: self.power,
         }
     }
@@ -156,7 +179,10 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for ExpMixtureFit<'_> {
     fn residuals(&self) -> Option<DVector<f64>> {
         let m = self.mixture();
         let d = self.data;
-        let r = DVector::from_iterator(d.len(), (0..d.len()).map(|j| (m.bin_mean(d.lo[j], d.hi[j]) - d.y[j]) / d.sigma[j]));
+        let r = DVector::from_iterator(
+            d.len(),
+            (0..d.len()).map(|j| (m.bin_mean(d.lo[j], d.hi[j]) - d.y[j]) / d.sigma[j]),
+        );
         r.iter().all(|v| v.is_finite()).then_some(r)
     }
 
@@ -185,7 +211,9 @@ impl Blocks for ExpMixtureFit<'_> {
 /// Amplitudes A ≥ 0 for fixed rates B by weighted NNLS.
 pub fn amplitudes_for_rates(data: &BinnedDensity, b: &[f64], power: u32) -> (Vec<f64>, f64) {
     let n = data.len();
-    let design = DMatrix::from_fn(n, b.len(), |j, k| component_bin(1.0, b[k], power, data.lo[j], data.hi[j]).0 / data.sigma[j]);
+    let design = DMatrix::from_fn(n, b.len(), |j, k| {
+        component_bin(1.0, b[k], power, data.lo[j], data.hi[j]).0 / data.sigma[j]
+    });
     let rhs = DVector::from_iterator(n, (0..n).map(|j| data.y[j] / data.sigma[j]));
     let a = nnls(&design, &rhs);
     let chi2 = (&design * &a - rhs).norm_squared();
@@ -241,7 +269,11 @@ pub fn initial_guess(data: &BinnedDensity, k: usize, power: u32) -> ExpMixture {
         // No signal at all: a flat start on the data's scale.
         let b = rate_grid(data, k, 0.1, 100.0);
         let e = data.energy().abs().max(1e-30) / k as f64;
-        return ExpMixture { a: b.iter().map(|b| e * b.powi(power as i32 + 1)).collect(), b, power };
+        return ExpMixture {
+            a: b.iter().map(|b| e * b.powi(power as i32 + 1)).collect(),
+            b,
+            power,
+        };
     }
     clusters.sort_by(|x, y| y.1.total_cmp(&x.1));
     clusters.truncate(k);
@@ -253,7 +285,10 @@ pub fn initial_guess(data: &BinnedDensity, k: usize, power: u32) -> ExpMixture {
         comps.push((0.5 * e, (b / 1.5).max(2.0 * B_MIN)));
     }
     let mut m = ExpMixture {
-        a: comps.iter().map(|(e, b)| e * b.powi(power as i32 + 1)).collect(),
+        a: comps
+            .iter()
+            .map(|(e, b)| e * b.powi(power as i32 + 1))
+            .collect(),
         b: comps.iter().map(|c| c.1).collect(),
         power,
     };
@@ -262,15 +297,31 @@ pub fn initial_guess(data: &BinnedDensity, k: usize, power: u32) -> ExpMixture {
 }
 
 /// Fits `k` exponentials, p(r) = Σ A r^power e^{−Br}, to `data`.
-pub fn fit_mixture(what: &str, data: &BinnedDensity, k: usize, power: u32, opts: &FitOptions) -> Result<(ExpMixture, FitReport), FitError> {
+pub fn fit_mixture(
+    what: &str,
+    data: &BinnedDensity,
+    k: usize,
+    power: u32,
+    opts: &FitOptions,
+) -> Result<(ExpMixture, FitReport), FitError> {
     if data.len() < 2 * k + 1 || data.energy() <= 0.0 {
         return Err(FitError::BadData {
             what: what.into(),
-            msg: format!("{} bins with energy {:.3e}: too little data for {k} components", data.len(), data.energy()),
+            msg: format!(
+                "{} bins with energy {:.3e}: too little data for {k} components",
+                data.len(),
+                data.energy()
+            ),
         });
     }
     let init = initial_guess(data, k, power);
-    let theta = DVector::from_iterator(2 * k, init.a.iter().map(|v| v.ln()).chain(init.b.iter().map(|&b| theta_from_rate(b))));
+    let theta = DVector::from_iterator(
+        2 * k,
+        init.a
+            .iter()
+            .map(|v| v.ln())
+            .chain(init.b.iter().map(|&b| theta_from_rate(b))),
+    );
     let (p, rep) = solve(what, ExpMixtureFit { data, power, theta }, opts)?;
     let mut m = p.mixture();
     sort_by_rate(&mut m);
@@ -296,8 +347,15 @@ mod tests {
 
     fn synthetic(m: &ExpMixture, noise: f64, seed: u64) -> BinnedDensity {
         let mut rng = PathRng::new(seed, 0);
-        let edges: Vec<f64> = std::iter::once(0.0).chain((0..=100).map(|k| 1e-3 * 10f64.powf(k as f64 / 20.0))).collect();
-        let mut d = BinnedDensity { lo: vec![], hi: vec![], y: vec![], sigma: vec![] };
+        let edges: Vec<f64> = std::iter::once(0.0)
+            .chain((0..=100).map(|k| 1e-3 * 10f64.powf(k as f64 / 20.0)))
+            .collect();
+        let mut d = BinnedDensity {
+            lo: vec![],
+            hi: vec![],
+            y: vec![],
+            sigma: vec![],
+        };
         for w in edges.windows(2) {
             let t = m.bin_mean(w[0], w[1]);
             let s = noise * t + 1e-9;
@@ -313,12 +371,29 @@ mod tests {
 
     #[test]
     fn jacobian_matches_numerical() {
-        let truth = ExpMixture { a: vec![0.2, 0.05, 0.004], b: vec![20.0, 2.0, 0.3], power: 1 };
+        let truth = ExpMixture {
+            a: vec![0.2, 0.05, 0.004],
+            b: vec![20.0, 2.0, 0.3],
+            power: 1,
+        };
         let d = synthetic(&truth, 0.01, 1);
         let mut rng = PathRng::new(2, 0);
         for _ in 0..5 {
-            let theta = DVector::from_iterator(6, (0..6).map(|i| if i < 3 { -4.0 + 3.0 * rng.uniform() } else { -1.5 + 4.0 * rng.uniform() }));
-            let mut p = ExpMixtureFit { data: &d, power: 1, theta };
+            let theta = DVector::from_iterator(
+                6,
+                (0..6).map(|i| {
+                    if i < 3 {
+                        -4.0 + 3.0 * rng.uniform()
+                    } else {
+                        -1.5 + 4.0 * rng.uniform()
+                    }
+                }),
+            );
+            let mut p = ExpMixtureFit {
+                data: &d,
+                power: 1,
+                theta,
+            };
             let err = jacobian_mismatch(&mut p);
             assert!(err < 1e-5, "relative Jacobian error {err}");
             // The crate's own numerical differentiation agrees too.
@@ -337,13 +412,20 @@ mod tests {
     }
 
     fn recovers(power: u32) {
-        let truth = ExpMixture { a: vec![0.2, 0.05, 0.004], b: vec![20.0, 2.0, 0.3], power };
+        let truth = ExpMixture {
+            a: vec![0.2, 0.05, 0.004],
+            b: vec![20.0, 2.0, 0.3],
+            power,
+        };
         let d = synthetic(&truth, 1e-3, 3);
         let (m, rep) = fit_mixture("synthetic", &d, 3, power, &FitOptions::default()).unwrap();
         assert!(rep.chi2_per_dof < 1.5, "{rep:?}");
         assert!((m.energy() / truth.energy() - 1.0).abs() < 1e-3);
         for (k, (a, b)) in truth.a.iter().zip(&truth.b).enumerate() {
-            assert!((m.a[k] / a - 1.0).abs() < 0.05 && (m.b[k] / b - 1.0).abs() < 0.05, "{m:?}");
+            assert!(
+                (m.a[k] / a - 1.0).abs() < 0.05 && (m.b[k] / b - 1.0).abs() < 0.05,
+                "{m:?}"
+            );
         }
     }
 }

@@ -21,7 +21,9 @@ use std::time::Instant;
 #[non_exhaustive]
 pub enum FitError {
     /// The optimiser stopped without meeting a convergence criterion.
-    #[error("{what}: Levenberg–Marquardt did not converge ({termination}) after {evaluations} evaluations, χ²/dof = {chi2_per_dof:.4}")]
+    #[error(
+        "{what}: Levenberg–Marquardt did not converge ({termination}) after {evaluations} evaluations, χ²/dof = {chi2_per_dof:.4}"
+    )]
     NotConverged {
         what: String,
         termination: String,
@@ -103,7 +105,9 @@ where
         .into_iter()
         .map(|(name, range)| {
             let n = range.len().max(1) as f64;
-            let s = r.as_ref().map_or(f64::NAN, |r| r.rows_range(range).norm_squared());
+            let s = r
+                .as_ref()
+                .map_or(f64::NAN, |r| r.rows_range(range).norm_squared());
             (name, (s / n).sqrt())
         })
         .collect();
@@ -141,7 +145,14 @@ where
 /// residuals per entry, O(m·n), too slow for the joint fits).
 pub fn jacobian_mismatch<P>(problem: &mut P) -> f64
 where
-    P: LeastSquaresProblem<f64, Dyn, Dyn, JacobianStorage = Owned<f64, Dyn, Dyn>, ParameterStorage = Owned<f64, Dyn>, ResidualStorage = Owned<f64, Dyn>>,
+    P: LeastSquaresProblem<
+            f64,
+            Dyn,
+            Dyn,
+            JacobianStorage = Owned<f64, Dyn, Dyn>,
+            ParameterStorage = Owned<f64, Dyn>,
+            ResidualStorage = Owned<f64, Dyn>,
+        >,
 {
     let analytic = problem.jacobian().expect("jacobian");
     let x0 = problem.params();
@@ -186,7 +197,9 @@ pub fn nnls(a: &nalgebra::DMatrix<f64>, b: &DVector<f64>) -> DVector<f64> {
         for _inner in 0..3 * n + 10 {
             let idx: Vec<usize> = (0..n).filter(|&k| passive[k]).collect();
             let sub = a.select_columns(&idx);
-            let Some(z_p) = sub.clone().svd(true, true).solve(b, 1e-14).ok() else { break };
+            let Some(z_p) = sub.clone().svd(true, true).solve(b, 1e-14).ok() else {
+                break;
+            };
             if z_p.iter().all(|&v| v > 0.0) {
                 for (t, &k) in idx.iter().enumerate() {
                     x[k] = z_p[t];

@@ -39,12 +39,24 @@ pub fn load_profiles(dir: &Path) -> Result<Vec<ProfileDoc>> {
     let entries = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
     let mut paths: Vec<PathBuf> = entries
         .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|x| x == "json") && !p.file_name().is_some_and(|n| n.to_string_lossy().starts_with('.')))
+        .filter(|p| {
+            p.extension().is_some_and(|x| x == "json")
+                && !p
+                    .file_name()
+                    .is_some_and(|n| n.to_string_lossy().starts_with('.'))
+        })
         .collect();
     paths.sort();
-    let docs = paths.iter().map(|p| ProfileDoc::load(p)).collect::<Result<Vec<_>>>()?;
+    let docs = paths
+        .iter()
+        .map(|p| ProfileDoc::load(p))
+        .collect::<Result<Vec<_>>>()?;
     if docs.is_empty() {
-        return Err(Error::format(dir, "(directory)", "no profile documents (*.json) found"));
+        return Err(Error::format(
+            dir,
+            "(directory)",
+            "no profile documents (*.json) found",
+        ));
     }
     Ok(docs)
 }
@@ -58,7 +70,9 @@ pub fn accuracy(model: &BasisModel, doc: &ProfileDoc) -> AccuracyRow {
     let alpha = doc.config.medium.alpha;
     let b = &doc.bins;
     let mix = model.profile(alpha);
-    let cb = RadialProfile { parts: vec![burley::profile(doc.R_d)] };
+    let cb = RadialProfile {
+        parts: vec![burley::profile(doc.R_d)],
+    };
     let (mut s_model, mut s_cb, mut s_noise) = (0.0, 0.0, 0.0);
     for k in 0..b.p_1.len() {
         let (lo, hi) = (b.edges[k], b.edges[k + 1]);
@@ -104,7 +118,13 @@ pub struct BasisReport {
 
 /// Fits the basis to the profiles of `in_dir` and writes the model to `out`
 /// and the report and plots to `report_dir`.
-pub fn fit_profiles(in_dir: &Path, out: &Path, report_dir: &Path, k: usize, degree: usize) -> Result<BasisReport> {
+pub fn fit_profiles(
+    in_dir: &Path,
+    out: &Path,
+    report_dir: &Path,
+    k: usize,
+    degree: usize,
+) -> Result<BasisReport> {
     let start = std::time::Instant::now();
     let docs = load_profiles(in_dir)?;
     let prov = serde_json::to_value(crate::provenance::Provenance::current()).unwrap_or_default();
@@ -113,7 +133,12 @@ pub fn fit_profiles(in_dir: &Path, out: &Path, report_dir: &Path, k: usize, degr
         "profiles_dir": in_dir.display().to_string(),
         "profiles": docs.iter().map(|d| serde_json::json!({"alpha": d.config.medium.alpha, "paths": d.paths, "seed": d.config.seed})).collect::<Vec<_>>(),
     });
-    let BasisFitOutcome { model, joint, single, per_profile } = fit_basis(&docs, k, degree, &FitOptions::default(), provenance)?;
+    let BasisFitOutcome {
+        model,
+        joint,
+        single,
+        per_profile,
+    } = fit_basis(&docs, k, degree, &FitOptions::default(), provenance)?;
     crate::io::write_json_atomic(out, &model)?;
     let mut rows: Vec<AccuracyRow> = docs.iter().map(|d| accuracy(&model, d)).collect();
     rows.sort_by(|a, b| a.alpha.total_cmp(&b.alpha));
@@ -134,6 +159,41 @@ pub fn fit_profiles(in_dir: &Path, out: &Path, report_dir: &Path, k: usize, degr
     Ok(report)
 }
 
+/// The multiple-scattering fit problem of one profile with LM's optimum, as
+/// JSON for an independent optimiser (tools/nlopt_check.py). The tail bin has
+/// `hi = null`; parameters are (ln A_k…, θ_k…) with B = rate_from_theta(θ).
+pub fn export_problem(doc: &ProfileDoc, k: usize) -> Result<serde_json::Value> {
+    use super::exp_mixture::{BinnedDensity, ExpMixtureFit, Order, fit_mixture, theta_from_rate};
+    use levenberg_marquardt::LeastSquaresProblem;
+    let data = BinnedDensity::from_profile(doc, Order::Multi);
+    let (m, rep) = fit_mixture("export", &data, k, 1, &FitOptions::default())?;
+    let theta: Vec<f64> =
+        m.a.iter()
+            .map(|a| a.ln())
+            .chain(m.b.iter().map(|&b| theta_from_rate(b)))
+            .collect();
+    let p = ExpMixtureFit {
+        data: &data,
+        power: 1,
+        theta: nalgebra::DVector::from_vec(theta.clone()),
+    };
+    let chi2 = p.residuals().map_or(f64::NAN, |r| r.norm_squared());
+    Ok(serde_json::json!({
+        "alpha": doc.config.medium.alpha,
+        "power": 1,
+        "components": k,
+        "b_min": crate::metamodel::basis::B_MIN,
+        "b_max": crate::metamodel::basis::B_MAX,
+        "lo": data.lo,
+        "hi": data.hi.iter().map(|h| if h.is_finite() { serde_json::json!(h) } else { serde_json::Value::Null }).collect::<Vec<_>>(),
+        "y": data.y,
+        "sigma": data.sigma,
+        "theta": theta,
+        "chi2": chi2,
+        "report": rep,
+    }))
+}
+
 /// Accuracy of a model file against the profiles of a directory.
 pub fn check(model: &BasisModel, in_dir: &Path) -> Result<Vec<AccuracyRow>> {
     let docs = load_profiles(in_dir)?;
@@ -144,7 +204,9 @@ pub fn check(model: &BasisModel, in_dir: &Path) -> Result<Vec<AccuracyRow>> {
 
 /// Markdown table of accuracy rows.
 pub fn markdown_table(rows: &[AccuracyRow]) -> String {
-    let mut s = String::from("| α | R_d sim | R_d model | rel. err | radial L2 model | radial L2 C–B | radial L2 MC noise |\n|---|---|---|---|---|---|---|\n");
+    let mut s = String::from(
+        "| α | R_d sim | R_d model | rel. err | radial L2 model | radial L2 C–B | radial L2 MC noise |\n|---|---|---|---|---|---|---|\n",
+    );
     for r in rows {
         s += &format!(
             "| {:.6} | {:.5} ± {:.5} | {:.5} | {:+.3} % | {:.4} | {:.4} | {:.4} |\n",
@@ -165,54 +227,171 @@ fn plots(model: &BasisModel, docs: &[ProfileDoc], rows: &[AccuracyRow], dir: &Pa
     // A few albedos across the range.
     let mut sorted: Vec<&ProfileDoc> = docs.iter().collect();
     sorted.sort_by(|a, b| a.config.medium.alpha.total_cmp(&b.config.medium.alpha));
-    let picks: Vec<&ProfileDoc> = [0.0, 0.5, 0.8, 1.0].iter().map(|f| sorted[((sorted.len() - 1) as f64 * f).round() as usize]).collect();
-    let rs: Vec<f64> = (0..=120).map(|i| 1e-3 * 10f64.powf(i as f64 / 24.0)).collect();
+    let picks: Vec<&ProfileDoc> = [0.0, 0.5, 0.8, 1.0]
+        .iter()
+        .map(|f| sorted[((sorted.len() - 1) as f64 * f).round() as usize])
+        .collect();
+    let rs: Vec<f64> = (0..=120)
+        .map(|i| 1e-3 * 10f64.powf(i as f64 / 24.0))
+        .collect();
     let mut series = Vec::new();
     let mut resid = Vec::new();
     for (c, d) in picks.iter().enumerate() {
         let a = d.config.medium.alpha;
         let b = &d.bins;
         let total: Vec<f64> = b.p_1.iter().zip(&b.p_m).map(|(x, y)| x + y).collect();
-        let err: Vec<f64> = b.p_1_stderr.iter().zip(&b.p_m_stderr).map(|(x, y)| (x * x + y * y).sqrt()).collect();
+        let err: Vec<f64> = b
+            .p_1_stderr
+            .iter()
+            .zip(&b.p_m_stderr)
+            .map(|(x, y)| (x * x + y * y).sqrt())
+            .collect();
         let (pts, e) = ring_points(&b.edges, &total, &err);
         // Draw the model only where the simulation has signal.
         let floor = pts.iter().map(|p| p.1).fold(f64::INFINITY, f64::min) / 10.0;
         let r_last = pts.last().map_or(100.0, |p| p.0);
         series.push(Series::points(format!("sim α = {a:.4}"), pts, Some(e), c));
-        series.push(Series::line("", rs.iter().filter(|&&r| r <= r_last).map(|&r| (r, model.density(r, a))).filter(|p| p.1 >= floor).collect(), c));
+        series.push(Series::line(
+            "",
+            rs.iter()
+                .filter(|&&r| r <= r_last)
+                .map(|&r| (r, model.density(r, a)))
+                .filter(|p| p.1 >= floor)
+                .collect(),
+            c,
+        ));
         let mix = model.profile(a);
         let rel: Vec<(f64, f64)> = (1..total.len())
-            .filter(|&k| total[k] > 0.0 && b.edges[k] >= RADIAL_RANGE.0 && b.edges[k + 1] <= RADIAL_RANGE.1)
-            .map(|k| ((b.edges[k] * b.edges[k + 1]).sqrt(), mix.bin_mean(b.edges[k], b.edges[k + 1]) / total[k] - 1.0))
+            .filter(|&k| {
+                total[k] > 0.0 && b.edges[k] >= RADIAL_RANGE.0 && b.edges[k + 1] <= RADIAL_RANGE.1
+            })
+            .map(|k| {
+                (
+                    (b.edges[k] * b.edges[k + 1]).sqrt(),
+                    mix.bin_mean(b.edges[k], b.edges[k + 1]) / total[k] - 1.0,
+                )
+            })
             .collect();
         resid.push(Series::line(format!("α = {a:.4}"), rel, c));
     }
-    let ax = |title: &str, x: &str, y: &str, lx: bool, ly: bool| Axes { title: title.into(), x_label: x.into(), y_label: y.into(), log_x: lx, log_y: ly };
-    chart(&dir.join("profiles.png"), &ax("p(r; α): simulation (points, ±1σ) vs smooth model (lines)", "r (MFP)", "p(r) (1/MFP)", true, true), &series)?;
-    chart(&dir.join("residuals.png"), &ax("relative residual of the model per ring, r ∈ [0.01, 20]", "r (MFP)", "model/sim − 1", true, false), &resid)?;
+    let ax = |title: &str, x: &str, y: &str, lx: bool, ly: bool| Axes {
+        title: title.into(),
+        x_label: x.into(),
+        y_label: y.into(),
+        log_x: lx,
+        log_y: ly,
+    };
+    chart(
+        &dir.join("profiles.png"),
+        &ax(
+            "p(r; α): simulation (points, ±1σ) vs smooth model (lines)",
+            "r (MFP)",
+            "p(r) (1/MFP)",
+            true,
+            true,
+        ),
+        &series,
+    )?;
+    chart(
+        &dir.join("residuals.png"),
+        &ax(
+            "relative residual of the model per ring, r ∈ [0.01, 20]",
+            "r (MFP)",
+            "model/sim − 1",
+            true,
+            false,
+        ),
+        &resid,
+    )?;
     let alphas: Vec<f64> = (0..=400).map(|i| i as f64 / 400.0).collect();
     chart(
         &dir.join("rd.png"),
-        &ax("R_d(α): smooth model vs simulation", "α", "R_d", false, false),
+        &ax(
+            "R_d(α): smooth model vs simulation",
+            "α",
+            "R_d",
+            false,
+            false,
+        ),
         &[
-            Series::line("model", alphas.iter().map(|&a| (a, model.r_d(a))).collect(), 0),
-            Series::points("simulation", rows.iter().map(|r| (r.alpha, r.rd_sim)).collect(), Some(rows.iter().map(|r| r.rd_sim_stderr).collect()), 1),
+            Series::line(
+                "model",
+                alphas.iter().map(|&a| (a, model.r_d(a))).collect(),
+                0,
+            ),
+            Series::points(
+                "simulation",
+                rows.iter().map(|r| (r.alpha, r.rd_sim)).collect(),
+                Some(rows.iter().map(|r| r.rd_sim_stderr).collect()),
+                1,
+            ),
         ],
     )?;
     chart(
         &dir.join("rd_error.png"),
-        &ax("R_d relative error (model/sim − 1) and radial L2 error", "α", "", false, false),
+        &ax(
+            "R_d relative error (model/sim − 1) and radial L2 error",
+            "α",
+            "",
+            false,
+            false,
+        ),
         &[
-            Series::points("R_d rel. error", rows.iter().map(|r| (r.alpha, r.rd_rel_err)).collect(), Some(rows.iter().map(|r| r.rd_sim_stderr / r.rd_sim).collect()), 0),
-            Series::line("radial L2 model", rows.iter().map(|r| (r.alpha, r.radial_l2_model)).collect(), 1),
-            Series::dashed("radial L2 Christensen–Burley", rows.iter().map(|r| (r.alpha, r.radial_l2_burley)).collect(), 2),
+            Series::points(
+                "R_d rel. error",
+                rows.iter().map(|r| (r.alpha, r.rd_rel_err)).collect(),
+                Some(rows.iter().map(|r| r.rd_sim_stderr / r.rd_sim).collect()),
+                0,
+            ),
+            Series::line(
+                "radial L2 model",
+                rows.iter().map(|r| (r.alpha, r.radial_l2_model)).collect(),
+                1,
+            ),
+            Series::dashed(
+                "radial L2 Christensen–Burley",
+                rows.iter().map(|r| (r.alpha, r.radial_l2_burley)).collect(),
+                2,
+            ),
         ],
     )?;
     let k = model.components();
     let per = |f: &dyn Fn(&ExpMixture, usize) -> f64| -> Vec<Series> {
-        (0..k).map(|i| Series::line(format!("k = {}", i + 1), alphas.iter().filter(|&&a| a > 0.0).map(|&a| (a, f(&model.multi(a), i))).collect(), i)).collect()
+        (0..k)
+            .map(|i| {
+                Series::line(
+                    format!("k = {}", i + 1),
+                    alphas
+                        .iter()
+                        .filter(|&&a| a > 0.0)
+                        .map(|&a| (a, f(&model.multi(a), i)))
+                        .collect(),
+                    i,
+                )
+            })
+            .collect()
     };
-    chart(&dir.join("amplitudes.png"), &ax("A_k(α) of the multiple-scattering mixture", "α", "A_k (1/MFP)", false, true), &per(&|m, i| m.a[i]))?;
-    chart(&dir.join("rates.png"), &ax("B_k(α) of the multiple-scattering mixture", "α", "B_k (1/MFP)", false, true), &per(&|m, i| m.b[i]))?;
+    chart(
+        &dir.join("amplitudes.png"),
+        &ax(
+            "A_k(α) of the multiple-scattering mixture",
+            "α",
+            "A_k (1/MFP)",
+            false,
+            true,
+        ),
+        &per(&|m, i| m.a[i]),
+    )?;
+    chart(
+        &dir.join("rates.png"),
+        &ax(
+            "B_k(α) of the multiple-scattering mixture",
+            "α",
+            "B_k (1/MFP)",
+            false,
+            true,
+        ),
+        &per(&|m, i| m.b[i]),
+    )?;
     Ok(())
 }
