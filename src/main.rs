@@ -5,6 +5,7 @@ use clap::{Args, Parser, Subcommand};
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::time::Duration;
+use svkernel::forward::kernel::{self, KernelConfig, KernelDoc, PairGrid};
 use svkernel::forward::medium::{Medium, Source};
 use svkernel::forward::profile::{self, DEFAULT_MAX_EVENTS, Engine, ProfileConfig, ProfileDoc};
 use svkernel::forward::runner::{RunOptions, Shard, chunk_range};
@@ -115,6 +116,60 @@ enum Simulate {
     /// Radial profile R(r) = R₁ + Rₘ of a homogeneous half-space or slab.
     #[command(allow_negative_numbers = true)]
     Profile(ProfileArgs),
+    /// Path densities (aggregation kernels) of a homogeneous half-space under
+    /// a pencil beam: first, last and all scattering vertices of the paths
+    /// that exit at each distance, for each albedo.
+    #[command(allow_negative_numbers = true)]
+    Kernels(KernelArgs),
+}
+
+#[derive(Args)]
+struct KernelArgs {
+    /// Comma-separated albedos in [0, 1].
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "0.3,0.6,0.8,0.9,0.95,0.99"
+    )]
+    albedos: Vec<f64>,
+    /// Comma-separated pair distances d in MFP (bins d·(1 ± rel-width) must not overlap).
+    #[arg(long, value_delimiter = ',', default_value = "0.1,0.25,0.5,1,2,4,8")]
+    distances: Vec<f64>,
+    /// Relative half-width w of the distance bins.
+    #[arg(long, default_value_t = 0.1)]
+    rel_width: f64,
+    /// Minimum scattering order of a contributing path (2: multiple scattering).
+    #[arg(long, default_value_t = 2)]
+    min_order: u32,
+    #[arg(long, default_value_t = 1.5)]
+    eta: f64,
+    #[arg(long, default_value_t = 0.3)]
+    g: f64,
+    /// Density ρ > 0 (σ_t = ρ per MFP).
+    #[arg(long, default_value_t = 1.0)]
+    density: f64,
+    /// Number of paths, each walked once per albedo (accepts 1e7 notation).
+    #[arg(long, default_value = "1e6", value_parser = parse_count)]
+    paths: u64,
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    #[arg(long)]
+    shard: Option<String>,
+    #[arg(long, default_value_t = DEFAULT_MAX_EVENTS)]
+    max_events: u32,
+    /// Histogram bins along the axis and across it, and the extent in units of λ = d/2 + 1/ρ.
+    #[arg(long, default_value_t = PairGrid::default().nu)]
+    nu: usize,
+    #[arg(long, default_value_t = PairGrid::default().nv)]
+    nv: usize,
+    #[arg(long, default_value_t = PairGrid::default().extent)]
+    extent: f64,
+    #[arg(long, default_value_t = 30.0)]
+    checkpoint_every: f64,
+    #[arg(long)]
+    resume: bool,
+    #[arg(long)]
+    out: PathBuf,
 }
 
 #[derive(Args)]
@@ -183,6 +238,75 @@ fn checkpoint_path(out: &std::path::Path) -> PathBuf {
     PathBuf::from(s)
 }
 
+/// Run options shared by the simulate commands; validates the interval.
+fn run_options(out: &std::path::Path, every: f64, resume: bool) -> Result<RunOptions> {
+    if !(every >= 0.0 && every.is_finite()) {
+        bail!("invalid --checkpoint-every = {every}: must be >= 0 seconds");
+    }
+    Ok(RunOptions {
+        checkpoint: Some(checkpoint_path(out)),
+        checkpoint_every: Duration::from_secs_f64(every),
+        resume,
+        progress: std::io::stderr().is_terminal(),
+    })
+}
+
+/// Removes the checkpoint of a finished run.
+fn remove_checkpoint(out: &std::path::Path) -> Result<()> {
+    let ckpt = checkpoint_path(out);
+    if ckpt.exists() {
+        std::fs::remove_file(&ckpt).with_context(|| format!("removing {}", ckpt.display()))?;
+    }
+    Ok(())
+}
+
+fn simulate_kernels(a: KernelArgs) -> Result<()> {
+    let shard = a.shard.as_deref().map(Shard::parse).transpose()?;
+    let config = KernelConfig {
+        g: a.g,
+        eta: a.eta,
+        density: a.density,
+        albedos: a.albedos,
+        distances: a.distances,
+        rel_width: a.rel_width,
+        min_order: a.min_order,
+        paths: a.paths,
+        seed: a.seed,
+        max_events: a.max_events,
+        grid: PairGrid {
+            nu: a.nu,
+            nv: a.nv,
+            extent: a.extent,
+        },
+    };
+    config.validate()?;
+    let opts = run_options(&a.out, a.checkpoint_every, a.resume)?;
+    let (tally, wall_s) = config.run(shard, &opts)?;
+    let chunks = vec![chunk_range(config.paths, shard)];
+    let doc = KernelDoc::new(config, shard, chunks, tally, wall_s, Provenance::current());
+    svkernel::io::write_json_atomic(&a.out, &doc)?;
+    remove_checkpoint(&a.out)?;
+    print_kernel_summary(&doc);
+    Ok(())
+}
+
+fn print_kernel_summary(doc: &KernelDoc) {
+    use std::io::Write;
+    let mut text = format!(
+        "{} paths × {} albedos in {:.2} s\n   α        d   contributing   mean n   mean u (all/first/last)\n",
+        doc.paths,
+        doc.config.albedos.len(),
+        doc.wall_s
+    );
+    for c in &doc.summary {
+        text += &format!(
+            "{:6.4} {:8.3} {:14} {:8.1}   {:+.3} / {:+.3} / {:+.3}\n",
+            c.albedo, c.d, c.paths, c.mean_vertices, c.mean_u[0], c.mean_u[1], c.mean_u[2]
+        );
+    }
+    let _ = std::io::stdout().lock().write_all(text.as_bytes());
+}
+
 fn simulate_profile(a: ProfileArgs) -> Result<()> {
     let medium = Medium::new(a.albedo, a.g, a.eta, a.density, a.thickness)?;
     let source = Source::parse(&a.source)?;
@@ -192,12 +316,6 @@ fn simulate_profile(a: ProfileArgs) -> Result<()> {
         "scalar" => Engine::Scalar,
         e => bail!("invalid engine = {e}: must be lanes or scalar"),
     };
-    if !(a.checkpoint_every >= 0.0 && a.checkpoint_every.is_finite()) {
-        bail!(
-            "invalid checkpoint-every = {}: must be >= 0 seconds",
-            a.checkpoint_every
-        );
-    }
     let config = ProfileConfig {
         medium,
         source,
@@ -208,20 +326,12 @@ fn simulate_profile(a: ProfileArgs) -> Result<()> {
         engine,
     };
     config.validate()?;
-    let ckpt = checkpoint_path(&a.out);
-    let opts = RunOptions {
-        checkpoint: Some(ckpt.clone()),
-        checkpoint_every: Duration::from_secs_f64(a.checkpoint_every),
-        resume: a.resume,
-        progress: std::io::stderr().is_terminal(),
-    };
+    let opts = run_options(&a.out, a.checkpoint_every, a.resume)?;
     let (tally, wall_s) = config.run(shard, &opts)?;
     let chunks = vec![chunk_range(config.paths, shard)];
     let doc = ProfileDoc::new(config, shard, chunks, tally, wall_s, Provenance::current());
     write_doc(&doc, &a.out, a.npy)?;
-    if ckpt.exists() {
-        std::fs::remove_file(&ckpt).with_context(|| format!("removing {}", ckpt.display()))?;
-    }
+    remove_checkpoint(&a.out)?;
     print_summary(&doc);
     Ok(())
 }
@@ -271,7 +381,23 @@ fn print_summary(doc: &ProfileDoc) {
     let _ = std::io::stdout().lock().write_all(text.as_bytes());
 }
 
+/// Merges profile or kernel shards (the format of the first input decides).
 fn merge(inputs: Vec<PathBuf>, out: PathBuf) -> Result<()> {
+    #[derive(serde::Deserialize)]
+    struct Head {
+        format: String,
+    }
+    let head: Head = svkernel::io::read_json(&inputs[0])?;
+    if head.format == kernel::KERNEL_FORMAT {
+        let docs = inputs
+            .into_iter()
+            .map(|p| KernelDoc::load(&p).map(|d| (p, d)))
+            .collect::<svkernel::Result<Vec<_>>>()?;
+        let doc = kernel::merge(&docs, Provenance::current())?;
+        svkernel::io::write_json_atomic(&out, &doc)?;
+        print_kernel_summary(&doc);
+        return Ok(());
+    }
     let docs = inputs
         .into_iter()
         .map(|p| ProfileDoc::load(&p).map(|d| (p, d)))
@@ -402,6 +528,7 @@ fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Simulate(Simulate::Profile(a)) => simulate_profile(a),
+        Command::Simulate(Simulate::Kernels(a)) => simulate_kernels(a),
         Command::Merge { inputs, out } => merge(inputs, out),
         Command::Demo { out, paths } => demo(out, paths),
         Command::Fit(f) => fit(f),

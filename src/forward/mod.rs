@@ -4,7 +4,8 @@
 //! pure samplers ([`sampling`]), per-path random streams ([`rng`]), the walk
 //! ([`walk`], scalar f64; [`simd`], eight f32 lanes), integer tallies
 //! ([`tally`]) and their deterministic, shardable execution ([`runner`],
-//! [`profile`]).
+//! [`profile`]); the path-density estimator of aggregation kernels
+//! ([`kernel`]) and piecewise-constant material maps ([`maps`]).
 //!
 //! ```
 //! use svkernel::forward::{medium::{Medium, Source}, profile::*, runner::RunOptions, tally::RadialBins};
@@ -25,6 +26,8 @@
 //! ```
 
 pub mod fresnel;
+pub mod kernel;
+pub mod maps;
 pub mod medium;
 pub mod profile;
 pub mod rng;

@@ -317,7 +317,6 @@ pub fn merge(
         return Err(Error::param("merge inputs", "none", "at least one file"));
     };
     let mut tally = ProfileTally::new(&first.config.bins);
-    let mut chunks: Vec<(u64, u64)> = Vec::new();
     let mut wall_s = 0.0;
     for (path, d) in docs {
         if d.config != first.config {
@@ -326,26 +325,11 @@ pub fn merge(
                 msg: "configuration differs from the first input (medium, source, paths, seed, bins, engine must match)".into(),
             });
         }
-        for &(lo, hi) in &d.chunks {
-            if chunks.iter().any(|&(a, b)| lo < b && a < hi) {
-                return Err(Error::Merge {
-                    path: path.clone(),
-                    msg: format!("chunks {lo}..{hi} overlap another input (the same shard twice?)"),
-                });
-            }
-            chunks.push((lo, hi));
-        }
         tally.merge(&d.tally);
         wall_s += d.wall_s;
     }
-    chunks.sort();
-    let mut joined: Vec<(u64, u64)> = Vec::new();
-    for (lo, hi) in chunks {
-        match joined.last_mut() {
-            Some(last) if last.1 == lo => last.1 = hi,
-            _ => joined.push((lo, hi)),
-        }
-    }
+    let joined =
+        super::runner::join_chunks(docs.iter().map(|(p, d)| (p.as_path(), &d.chunks[..])))?;
     let complete = joined == [chunk_range(first.config.paths, None)];
     let shard = if complete { None } else { first.shard };
     Ok(ProfileDoc::new(

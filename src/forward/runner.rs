@@ -76,6 +76,35 @@ pub fn chunk_paths(paths: u64, c: u64) -> (u64, u64) {
     (first, CHUNK_PATHS.min(paths.saturating_sub(first)))
 }
 
+/// Joins the chunk ranges of documents to be merged: they must be disjoint
+/// (the same shard twice is an error naming the file); adjacent ranges are
+/// coalesced, sorted.
+pub fn join_chunks<'a>(
+    inputs: impl IntoIterator<Item = (&'a std::path::Path, &'a [(u64, u64)])>,
+) -> Result<Vec<(u64, u64)>> {
+    let mut chunks: Vec<(u64, u64)> = Vec::new();
+    for (path, ranges) in inputs {
+        for &(lo, hi) in ranges {
+            if chunks.iter().any(|&(a, b)| lo < b && a < hi) {
+                return Err(Error::Merge {
+                    path: path.to_path_buf(),
+                    msg: format!("chunks {lo}..{hi} overlap another input (the same shard twice?)"),
+                });
+            }
+            chunks.push((lo, hi));
+        }
+    }
+    chunks.sort();
+    let mut joined: Vec<(u64, u64)> = Vec::new();
+    for (lo, hi) in chunks {
+        match joined.last_mut() {
+            Some(last) if last.1 == lo => last.1 = hi,
+            _ => joined.push((lo, hi)),
+        }
+    }
+    Ok(joined)
+}
+
 /// Checkpoint of a running simulation. `key` identifies the configuration
 /// (a resumed run must be the same simulation).
 #[derive(Serialize, Deserialize)]

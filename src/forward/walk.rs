@@ -101,11 +101,47 @@ pub enum Fate {
     Truncated,
 }
 
+/// Where the walk reads the single-scattering albedo: the integer scatter
+/// threshold t = α·2³² ([`threshold_u32`]) at a collision at (x, y).
+/// Material maps are 2.5D (design §2), so depth does not enter.
+pub trait AlbedoField {
+    fn threshold(&self, x: f64, y: f64) -> u64;
+}
+
+/// A homogeneous albedo: the same threshold everywhere.
+#[derive(Clone, Copy, Debug)]
+pub struct UniformAlbedo(pub u64);
+
+impl AlbedoField for UniformAlbedo {
+    #[inline(always)]
+    fn threshold(&self, _x: f64, _y: f64) -> u64 {
+        self.0
+    }
+}
+
 /// Walks one launched path to its end; returns the fate and the number of
 /// scattering events.
 pub fn walk(medium: &Medium, max_events: u32, start: Launched, rng: &mut PathRng) -> (Fate, u32) {
+    let albedo = UniformAlbedo(threshold_u32(medium.alpha));
+    walk_general(medium, &albedo, max_events, start, rng, |_| {})
+}
+
+/// The walk with the albedo read from `albedo` at every collision (the
+/// medium's own `alpha` is ignored) and `visit` called with the position of
+/// every scattering vertex, in order. Density stays homogeneous (σ_t of
+/// `medium`). The stream is consumed exactly as by [`walk`]: with a uniform
+/// field both give the same path. The azimuth φ = 2π(b + ½)/t uses the local
+/// threshold t, below which b is uniform, so it stays exact.
+#[inline]
+pub fn walk_general<A: AlbedoField>(
+    medium: &Medium,
+    albedo: &A,
+    max_events: u32,
+    start: Launched,
+    rng: &mut PathRng,
+    mut visit: impl FnMut(Vec3),
+) -> (Fate, u32) {
     let sigma_t = medium.sigma_t();
-    let alpha_threshold = threshold_u32(medium.alpha);
     let inv_eta = 1.0 / medium.eta;
     let bottom = medium.thickness.map(|l| -l);
     let [mut x, mut y, mut z] = start.position;
@@ -145,10 +181,12 @@ pub fn walk(medium: &Medium, max_events: u32, start: Launched, rng: &mut PathRng
         y += w[1] * s;
         z += w[2] * s;
         // ---- collision: absorb or scatter -----------------------------------
+        let alpha_threshold = albedo.threshold(x, y);
         if (b as u64) >= alpha_threshold {
             return (Fate::Absorbed, n);
         }
         n += 1;
+        visit([x, y, z]);
         if n >= max_events {
             return (Fate::Truncated, n);
         }

@@ -1,0 +1,644 @@
+//! The path-density estimator (design §1, §3 step 1): where the paths that
+//! connect an entry point x_i to an exit point x_e scatter.
+//!
+//! # What is measured
+//! A normal-incidence pencil beam enters the homogeneous half-space at
+//! x_i = 0. A path that leaves through the surface at x_e after `n ≥
+//! min_order` scatterings (default 2: the multiple-scattering transport that
+//! the aggregated albedo α_t serves, design §4) *contributes* to the distance
+//! bin holding d_p = |x_e| (bins [d(1 − w), d(1 + w)]). Its scattering
+//! vertices are expressed in the path's own pair frame: t = v·ê along the axis
+//! from x_i (t = 0) to x_e (t = d_p), s = v·ê⊥ across it (depth integrated
+//! out: maps are 2.5D), |s| folded by the mirror symmetry. Three classes are
+//! tallied: the **first** vertex, the **last** vertex and **all** vertices.
+//!
+//! Every contributing path has weight 1 (analog walk), so the "all" density
+//! is E[#vertices in a cell | the path contributes]. A vertex at x is exactly
+//! where the path reads α(x): for the analog walk the probability of a path
+//! is a product of α(x_j) over its vertices times factors that do not depend
+//! on α, hence ∂ ln M(x_e)/∂ ln α(cell) = E[#vertices in the cell | contributes]
+//! — the "all" density *is* the first-order sensitivity of the exitance to the
+//! albedo map (tested against a finite difference of the heterogeneous walk).
+//!
+//! # Normalised coordinates
+//! Histograms are binned in u = (t − d_p/2)/λ ∈ [−E, E), v = |s|/λ ∈ [0, E)
+//! with λ = d_p/2 + ℓ, ℓ = 1/σ_t the mean free path of the simulated medium.
+//! λ interpolates between the two length scales of the problem: the mean free
+//! path (the kernel of a short pair is a blob of a few ℓ around x_i ≈ x_e)
+//! and the pair distance (a long pair's vertices spread along the axis).
+//! Because λ scales with 1/ρ, the normalised histogram at (d, α, ρ) equals the
+//! one at (ρd, α, 1) exactly — the density scaling law, tested bin by bin.
+//!
+//! # Determinism
+//! Integer counts (per bin: Σ n_b and Σ n_b² over contributing paths, for
+//! standard errors) and fixed-point moment sums: mergeable exactly, so results
+//! are bitwise identical for any thread count and for shards merged with
+//! [`merge`]. Every albedo of a simulation reuses the path's stream
+//! (common random numbers across albedos).
+
+use super::medium::Medium;
+use super::rng::{PathRng, threshold_u32};
+use super::runner::{self, RunOptions, Shard, Tally, chunk_paths, chunk_range};
+use super::walk::{Fate, UniformAlbedo, launch, walk_general};
+use crate::error::{Error, Result};
+use crate::forward::medium::Source;
+use crate::provenance::Provenance;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// Format tag of kernel documents.
+pub const KERNEL_FORMAT: &str = "svkernel.kernels";
+/// Version of the kernel document format.
+pub const KERNEL_VERSION: u32 = 1;
+/// Fixed-point resolution of the moment sums (2⁻¹⁶ in normalised units).
+const MOMENT_Q: f64 = 65536.0;
+
+/// The (u, v) grid of the histograms (see the module docs).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PairGrid {
+    /// Bins along the axis, over u ∈ [−extent, extent).
+    pub nu: usize,
+    /// Bins across, over v = |s|/λ ∈ [0, extent).
+    pub nv: usize,
+    pub extent: f64,
+}
+
+impl Default for PairGrid {
+    fn default() -> Self {
+        PairGrid {
+            nu: 32,
+            nv: 16,
+            extent: 4.0,
+        }
+    }
+}
+
+impl PairGrid {
+    /// Bins, without the overflow bin (which has index `bins()`).
+    pub fn bins(&self) -> usize {
+        self.nu * self.nv
+    }
+
+    /// λ = d/2 + ℓ in MFP for pair distance d and mean free path ℓ = 1/σ_t.
+    pub fn scale(d: f64, mfp: f64) -> f64 {
+        0.5 * d + mfp
+    }
+
+    /// Bin of the normalised position (u, v ≥ 0); `bins()` if outside.
+    #[inline]
+    pub fn index(&self, u: f64, v: f64) -> usize {
+        let iu = ((u + self.extent) / (2.0 * self.extent) * self.nu as f64).floor();
+        let iv = (v / self.extent * self.nv as f64).floor();
+        if iu >= 0.0 && iu < self.nu as f64 && iv >= 0.0 && iv < self.nv as f64 {
+            iu as usize * self.nv + iv as usize
+        } else {
+            self.bins()
+        }
+    }
+
+    /// Edges in u (nu + 1).
+    pub fn u_edges(&self) -> Vec<f64> {
+        (0..=self.nu)
+            .map(|k| -self.extent + 2.0 * self.extent * k as f64 / self.nu as f64)
+            .collect()
+    }
+
+    /// Edges in v (nv + 1).
+    pub fn v_edges(&self) -> Vec<f64> {
+        (0..=self.nv)
+            .map(|k| self.extent * k as f64 / self.nv as f64)
+            .collect()
+    }
+}
+
+/// Which scattering vertices a histogram holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum VertexClass {
+    All,
+    First,
+    Last,
+}
+
+impl VertexClass {
+    pub const ALL: [VertexClass; 3] = [VertexClass::All, VertexClass::First, VertexClass::Last];
+
+    fn slot(self) -> usize {
+        self as usize
+    }
+
+    /// Parses `all|first|last`.
+    pub fn parse(s: &str) -> Result<Self> {
+        match s {
+            "all" => Ok(VertexClass::All),
+            "first" => Ok(VertexClass::First),
+            "last" => Ok(VertexClass::Last),
+            _ => Err(Error::param("--vertices", s, "all, first or last")),
+        }
+    }
+}
+
+/// Counts of one vertex class in one (albedo, distance) cell.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ClassTally {
+    /// Σ over contributing paths of the path's vertex count per bin; the last
+    /// entry is the overflow (outside the grid).
+    pub count: Vec<u64>,
+    /// Σ of the squared per-path counts, per bin (for standard errors).
+    pub sq: Vec<u64>,
+    /// Σ u and Σ v² over the vertices, fixed point (2⁻¹⁶).
+    pub sum_u_q: i64,
+    pub sum_v2_q: u64,
+}
+
+impl ClassTally {
+    fn new(grid: &PairGrid) -> Self {
+        ClassTally {
+            count: vec![0; grid.bins() + 1],
+            sq: vec![0; grid.bins() + 1],
+            sum_u_q: 0,
+            sum_v2_q: 0,
+        }
+    }
+
+    fn merge(&mut self, o: &Self) {
+        for (a, b) in self.count.iter_mut().zip(&o.count) {
+            *a += b;
+        }
+        for (a, b) in self.sq.iter_mut().zip(&o.sq) {
+            *a += b;
+        }
+        self.sum_u_q += o.sum_u_q;
+        self.sum_v2_q += o.sum_v2_q;
+    }
+
+    /// Adds one path whose vertices of this class fall in `bins` (sorted).
+    fn add_path(&mut self, bins: &[usize]) {
+        let mut k = 0;
+        while k < bins.len() {
+            let b = bins[k];
+            let run = bins[k..].iter().take_while(|&&x| x == b).count() as u64;
+            self.count[b] += run;
+            self.sq[b] += run * run;
+            k += run as usize;
+        }
+    }
+
+    fn add_moment(&mut self, u: f64, v: f64) {
+        self.sum_u_q += (u * MOMENT_Q).round() as i64;
+        self.sum_v2_q += (v * v * MOMENT_Q).round() as u64;
+    }
+
+    /// Vertices tallied (overflow included).
+    pub fn vertices(&self) -> u64 {
+        self.count.iter().sum()
+    }
+}
+
+/// One (albedo, distance) cell.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CellTally {
+    /// Contributing paths.
+    pub paths: u64,
+    /// Σ n and Σ n² of the paths' scattering counts.
+    pub events: u64,
+    pub events_sq: u64,
+    /// all, first, last.
+    pub classes: [ClassTally; 3],
+}
+
+impl CellTally {
+    fn new(grid: &PairGrid) -> Self {
+        CellTally {
+            paths: 0,
+            events: 0,
+            events_sq: 0,
+            classes: std::array::from_fn(|_| ClassTally::new(grid)),
+        }
+    }
+}
+
+/// The tally of a kernel simulation: `cells[albedo][distance]`.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct KernelTally {
+    /// Launched paths (each walked once per albedo).
+    pub paths: u64,
+    pub cells: Vec<Vec<CellTally>>,
+}
+
+impl KernelTally {
+    pub fn new(config: &KernelConfig) -> Self {
+        KernelTally {
+            paths: 0,
+            cells: config
+                .albedos
+                .iter()
+                .map(|_| {
+                    config
+                        .distances
+                        .iter()
+                        .map(|_| CellTally::new(&config.grid))
+                        .collect()
+                })
+                .collect(),
+        }
+    }
+}
+
+impl Tally for KernelTally {
+    fn merge(&mut self, other: &Self) {
+        self.paths += other.paths;
+        for (ra, rb) in self.cells.iter_mut().zip(&other.cells) {
+            for (a, b) in ra.iter_mut().zip(rb) {
+                a.paths += b.paths;
+                a.events += b.events;
+                a.events_sq += b.events_sq;
+                for (ca, cb) in a.classes.iter_mut().zip(&b.classes) {
+                    ca.merge(cb);
+                }
+            }
+        }
+    }
+}
+
+/// Everything that determines a kernel simulation.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct KernelConfig {
+    pub g: f64,
+    pub eta: f64,
+    /// ρ: σ_t = ρ (homogeneous).
+    pub density: f64,
+    pub albedos: Vec<f64>,
+    /// Nominal pair distances d (MFP); a path contributes to d if
+    /// |x_e| ∈ [d(1 − w), d(1 + w)].
+    pub distances: Vec<f64>,
+    /// w.
+    pub rel_width: f64,
+    /// Minimum number of scattering vertices of a contributing path.
+    pub min_order: u32,
+    pub paths: u64,
+    pub seed: u64,
+    pub max_events: u32,
+    pub grid: PairGrid,
+}
+
+impl KernelConfig {
+    /// The medium at albedo `alpha` (validated).
+    pub fn medium(&self, alpha: f64) -> Result<Medium> {
+        Medium::new(alpha, self.g, self.eta, self.density, None)
+    }
+
+    pub fn validate(&self) -> Result<()> {
+        if self.albedos.is_empty() {
+            return Err(Error::param("--albedos", "(none)", "at least one albedo"));
+        }
+        for a in &self.albedos {
+            self.medium(*a)?;
+        }
+        if self.distances.is_empty() {
+            return Err(Error::param(
+                "--distances",
+                "(none)",
+                "at least one distance",
+            ));
+        }
+        if !(self.rel_width > 0.0 && self.rel_width < 1.0) {
+            return Err(Error::param("--rel-width", self.rel_width, "in (0, 1)"));
+        }
+        let mut d = self.distances.clone();
+        if d.iter().any(|x| !(*x > 0.0 && x.is_finite())) {
+            return Err(Error::param(
+                "--distances",
+                format!("{:?}", self.distances),
+                "finite and > 0",
+            ));
+        }
+        d.sort_by(f64::total_cmp);
+        if d.windows(2)
+            .any(|p| p[0] * (1.0 + self.rel_width) > p[1] * (1.0 - self.rel_width))
+        {
+            return Err(Error::param(
+                "--distances",
+                format!("{:?}", self.distances),
+                "bins d(1 ± rel-width) that do not overlap",
+            ));
+        }
+        if self.paths == 0 {
+            return Err(Error::param("--paths", 0, ">= 1"));
+        }
+        if self.max_events == 0 {
+            return Err(Error::param("--max-events", 0, ">= 1"));
+        }
+        if self.grid.nu == 0 || self.grid.nv == 0 || !(self.grid.extent > 0.0) {
+            return Err(Error::param(
+                "grid",
+                format!("{:?}", self.grid),
+                "nu, nv >= 1, extent > 0",
+            ));
+        }
+        Ok(())
+    }
+
+    /// The distance bin of an exit at radius r, if any.
+    fn distance_bin(&self, r: f64) -> Option<usize> {
+        let w = self.rel_width;
+        self.distances
+            .iter()
+            .position(|d| r >= d * (1.0 - w) && r <= d * (1.0 + w))
+    }
+
+    /// Simulates chunk `c`.
+    pub fn simulate_chunk(&self, c: u64) -> KernelTally {
+        let (first, count) = chunk_paths(self.paths, c);
+        let mut tally = KernelTally::new(self);
+        let mfp = 1.0 / self.density;
+        let media: Vec<(Medium, UniformAlbedo)> = self
+            .albedos
+            .iter()
+            .map(|a| {
+                let m = self.medium(*a).expect("validated");
+                (m, UniformAlbedo(threshold_u32(*a)))
+            })
+            .collect();
+        let mut vertices: Vec<[f64; 2]> = Vec::new();
+        let mut bins: Vec<usize> = Vec::new();
+        for path in first..first + count {
+            tally.paths += 1;
+            let mut base = PathRng::new(self.seed, path);
+            let Some(start) = launch(&Source::Pencil, self.eta, &mut base) else {
+                continue;
+            };
+            for (ia, (medium, albedo)) in media.iter().enumerate() {
+                let mut rng = base;
+                vertices.clear();
+                let (fate, n) =
+                    walk_general(medium, albedo, self.max_events, start, &mut rng, |v| {
+                        vertices.push([v[0], v[1]])
+                    });
+                let Fate::Exit { x, y } = fate else { continue };
+                if n < self.min_order {
+                    continue;
+                }
+                let d = x.hypot(y);
+                let Some(id) = self.distance_bin(d) else {
+                    continue;
+                };
+                let cell = &mut tally.cells[ia][id];
+                cell.paths += 1;
+                cell.events += n as u64;
+                cell.events_sq += n as u64 * n as u64;
+                let (ex, ey) = (x / d, y / d);
+                let lambda = PairGrid::scale(d, mfp);
+                let frame = |p: [f64; 2]| {
+                    let t = p[0] * ex + p[1] * ey;
+                    let s = -p[0] * ey + p[1] * ex;
+                    ((t - 0.5 * d) / lambda, s.abs() / lambda)
+                };
+                bins.clear();
+                for p in &vertices {
+                    let (u, v) = frame(*p);
+                    bins.push(self.grid.index(u, v));
+                    cell.classes[VertexClass::All.slot()].add_moment(u, v);
+                }
+                bins.sort_unstable();
+                cell.classes[VertexClass::All.slot()].add_path(&bins);
+                for (class, p) in [
+                    (VertexClass::First, vertices[0]),
+                    (VertexClass::Last, vertices[vertices.len() - 1]),
+                ] {
+                    let (u, v) = frame(p);
+                    let c = &mut cell.classes[class.slot()];
+                    c.add_path(&[self.grid.index(u, v)]);
+                    c.add_moment(u, v);
+                }
+            }
+        }
+        tally
+    }
+
+    /// Runs the whole simulation or one shard of it.
+    pub fn run(&self, shard: Option<Shard>, opts: &RunOptions) -> Result<(KernelTally, f64)> {
+        self.validate()?;
+        let key = serde_json::json!({ "kernels": self, "shard": shard });
+        let out = runner::run(
+            &key,
+            chunk_range(self.paths, shard),
+            KernelTally::new(self),
+            |c| self.simulate_chunk(c),
+            opts,
+        )?;
+        Ok((out.tally, out.wall_s))
+    }
+}
+
+/// A measured kernel on the normalised grid: the fraction of the class's
+/// vertices in each bin (Σ mass + overflow = 1), with standard errors.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NormalizedHistogram {
+    pub albedo: f64,
+    pub d: f64,
+    /// λ = d/2 + ℓ at the nominal d: t = d/2 + λu, |s| = λv in MFP.
+    pub lambda: f64,
+    pub class: VertexClass,
+    pub u_edges: Vec<f64>,
+    pub v_edges: Vec<f64>,
+    /// `nu × nv`, row-major `[iu * nv + iv]`.
+    pub mass: Vec<f64>,
+    pub sigma: Vec<f64>,
+    pub overflow: f64,
+    pub overflow_sigma: f64,
+    pub paths: u64,
+    /// Mean vertices of this class per contributing path (1 for first/last).
+    pub mean_vertices: f64,
+    /// Mean of u and of v² over the vertices.
+    pub mean_u: f64,
+    pub mean_v2: f64,
+}
+
+/// One row of the summary of a kernel document.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CellSummary {
+    pub albedo: f64,
+    pub d: f64,
+    /// Contributing paths, and their fraction of the launched paths.
+    pub paths: u64,
+    pub fraction: f64,
+    /// Mean scattering vertices per contributing path.
+    pub mean_vertices: f64,
+    /// Mean u and v² of all / first / last vertices.
+    pub mean_u: [f64; 3],
+    pub mean_v2: [f64; 3],
+}
+
+/// The output of `svkernel simulate kernels`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct KernelDoc {
+    pub format: String,
+    pub version: u32,
+    pub paths: u64,
+    pub wall_s: f64,
+    pub config: KernelConfig,
+    pub shard: Option<Shard>,
+    pub chunks: Vec<(u64, u64)>,
+    pub summary: Vec<CellSummary>,
+    pub tally: KernelTally,
+    pub provenance: Provenance,
+}
+
+impl KernelDoc {
+    pub fn new(
+        config: KernelConfig,
+        shard: Option<Shard>,
+        chunks: Vec<(u64, u64)>,
+        tally: KernelTally,
+        wall_s: f64,
+        provenance: Provenance,
+    ) -> Self {
+        let mut summary = Vec::new();
+        for (ia, a) in config.albedos.iter().enumerate() {
+            for (id, d) in config.distances.iter().enumerate() {
+                let c = &tally.cells[ia][id];
+                let n = c.paths.max(1) as f64;
+                let moments = |k: usize, v2: bool| {
+                    let cl = &c.classes[k];
+                    let nv = cl.vertices().max(1) as f64;
+                    if v2 {
+                        cl.sum_v2_q as f64 / MOMENT_Q / nv
+                    } else {
+                        cl.sum_u_q as f64 / MOMENT_Q / nv
+                    }
+                };
+                summary.push(CellSummary {
+                    albedo: *a,
+                    d: *d,
+                    paths: c.paths,
+                    fraction: c.paths as f64 / tally.paths.max(1) as f64,
+                    mean_vertices: c.events as f64 / n,
+                    mean_u: std::array::from_fn(|k| moments(k, false)),
+                    mean_v2: std::array::from_fn(|k| moments(k, true)),
+                });
+            }
+        }
+        KernelDoc {
+            format: KERNEL_FORMAT.into(),
+            version: KERNEL_VERSION,
+            paths: tally.paths,
+            wall_s,
+            config,
+            shard,
+            chunks,
+            summary,
+            tally,
+            provenance,
+        }
+    }
+
+    /// Loads and checks a kernel document (format, version, tally shape).
+    pub fn load(path: &Path) -> Result<Self> {
+        let doc: KernelDoc = crate::io::read_json(path)?;
+        if doc.format != KERNEL_FORMAT {
+            return Err(Error::format(
+                path,
+                "format",
+                format!("expected {KERNEL_FORMAT}, found {}", doc.format),
+            ));
+        }
+        if doc.version != KERNEL_VERSION {
+            return Err(Error::format(
+                path,
+                "version",
+                format!("expected {KERNEL_VERSION}, found {}", doc.version),
+            ));
+        }
+        let c = &doc.config;
+        let bins = c.grid.bins() + 1;
+        let shape_ok = doc.tally.cells.len() == c.albedos.len()
+            && doc.tally.cells.iter().all(|row| {
+                row.len() == c.distances.len()
+                    && row.iter().all(|cell| {
+                        cell.classes
+                            .iter()
+                            .all(|k| k.count.len() == bins && k.sq.len() == bins)
+                    })
+            });
+        if !shape_ok {
+            return Err(Error::format(
+                path,
+                "tally.cells",
+                "shape does not match config (albedos × distances × grid bins)",
+            ));
+        }
+        Ok(doc)
+    }
+
+    /// The normalised histogram of cell (albedo `ia`, distance `id`).
+    ///
+    /// mass_b = Σ n_b / Σ_b′ n_b′ (fraction of the class's vertices). Its
+    /// standard error is the ratio estimator's first-order error with the
+    /// denominator treated as exact: sqrt(Var(n_b)/N)/n̄ with
+    /// Var(n_b) = Σn_b²/N − (Σn_b/N)² (exact for first/last, where n̄ = 1).
+    pub fn histogram(&self, ia: usize, id: usize, class: VertexClass) -> NormalizedHistogram {
+        let c = &self.config;
+        let cell = &self.tally.cells[ia][id];
+        let cl = &cell.classes[class.slot()];
+        let n = cell.paths.max(1) as f64;
+        let total = cl.vertices();
+        let mean_vertices = total as f64 / n;
+        let norm = mean_vertices.max(f64::MIN_POSITIVE);
+        let stat = |b: usize| {
+            let m = cl.count[b] as f64 / n;
+            let var = (cl.sq[b] as f64 / n - m * m).max(0.0);
+            (m / norm, (var / n).sqrt() / norm)
+        };
+        let bins = c.grid.bins();
+        let (mass, sigma): (Vec<f64>, Vec<f64>) = (0..bins).map(stat).unzip();
+        let (overflow, overflow_sigma) = stat(bins);
+        let nv = total.max(1) as f64;
+        NormalizedHistogram {
+            albedo: c.albedos[ia],
+            d: c.distances[id],
+            lambda: PairGrid::scale(c.distances[id], 1.0 / c.density),
+            class,
+            u_edges: c.grid.u_edges(),
+            v_edges: c.grid.v_edges(),
+            mass,
+            sigma,
+            overflow,
+            overflow_sigma,
+            paths: cell.paths,
+            mean_vertices,
+            mean_u: cl.sum_u_q as f64 / MOMENT_Q / nv,
+            mean_v2: cl.sum_v2_q as f64 / MOMENT_Q / nv,
+        }
+    }
+}
+
+/// Merges shard documents into one (see [`super::profile::merge`]).
+pub fn merge(docs: &[(PathBuf, KernelDoc)], provenance: Provenance) -> Result<KernelDoc> {
+    let Some((_, first)) = docs.first() else {
+        return Err(Error::param("merge inputs", "none", "at least one file"));
+    };
+    let mut tally = KernelTally::new(&first.config);
+    let mut wall_s = 0.0;
+    for (path, d) in docs {
+        if d.config != first.config {
+            return Err(Error::Merge {
+                path: path.clone(),
+                msg: "configuration differs from the first input".into(),
+            });
+        }
+        tally.merge(&d.tally);
+        wall_s += d.wall_s;
+    }
+    let joined = runner::join_chunks(docs.iter().map(|(p, d)| (p.as_path(), &d.chunks[..])))?;
+    let complete = joined == [chunk_range(first.config.paths, None)];
+    let shard = if complete { None } else { first.shard };
+    Ok(KernelDoc::new(
+        first.config.clone(),
+        shard,
+        joined,
+        tally,
+        wall_s,
+        provenance,
+    ))
+}

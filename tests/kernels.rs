@@ -1,0 +1,324 @@
+//! The path-density estimator (issue 5 §1): determinism, the density scaling
+//! law, the sensitivity identity, hard cases.
+
+use svkernel::forward::kernel::{
+    KernelConfig, KernelDoc, KernelTally, PairGrid, VertexClass, merge,
+};
+use svkernel::forward::maps::{AlbedoMap, TexelMap};
+use svkernel::forward::medium::{Medium, Source};
+use svkernel::forward::rng::{PathRng, threshold_u32};
+use svkernel::forward::runner::{RunOptions, Shard, Tally, chunk_range};
+use svkernel::forward::walk::{AlbedoField, Fate, launch, walk_general};
+use svkernel::provenance::Provenance;
+use svkernel::testing::Z_MC;
+
+fn config(albedos: &[f64], distances: &[f64], density: f64, paths: u64, seed: u64) -> KernelConfig {
+    KernelConfig {
+        g: 0.3,
+        eta: 1.5,
+        density,
+        albedos: albedos.to_vec(),
+        distances: distances.to_vec(),
+        rel_width: 0.1,
+        min_order: 2,
+        paths,
+        seed,
+        max_events: 100_000,
+        grid: PairGrid::default(),
+    }
+}
+
+fn doc(c: &KernelConfig, shard: Option<Shard>) -> KernelDoc {
+    let (tally, wall) = c.run(shard, &RunOptions::default()).unwrap();
+    KernelDoc::new(
+        c.clone(),
+        shard,
+        vec![chunk_range(c.paths, shard)],
+        tally,
+        wall,
+        Provenance::current(),
+    )
+}
+
+#[test]
+fn one_vs_many_threads_and_shards_are_bitwise_identical() {
+    let c = config(&[0.7, 0.95], &[0.5, 2.0], 1.0, 3 * 16384 + 123, 9);
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap()
+        .install(|| c.run(None, &RunOptions::default()).unwrap().0);
+    let many = c.run(None, &RunOptions::default()).unwrap().0;
+    assert_eq!(one, many);
+    let shards: Vec<_> = (0..3)
+        .map(|k| {
+            let s = Shard { index: k, count: 3 };
+            (std::path::PathBuf::from(format!("s{k}")), doc(&c, Some(s)))
+        })
+        .collect();
+    let merged = merge(&shards, Provenance::current()).unwrap();
+    assert_eq!(merged.tally, many);
+    assert_eq!(merged.shard, None);
+    // The same shard twice is refused.
+    assert!(
+        merge(
+            &[shards[0].clone(), shards[0].clone()],
+            Provenance::current()
+        )
+        .is_err()
+    );
+    // Chunk tallies merge in any grouping to the same counts.
+    let mut t = KernelTally::new(&c);
+    for k in (0..4).rev() {
+        t.merge(&c.simulate_chunk(k));
+    }
+    assert_eq!(t, many);
+}
+
+/// χ² between two independent normalised histograms over bins with data.
+fn chi2(
+    a: &svkernel::forward::kernel::NormalizedHistogram,
+    b: &svkernel::forward::kernel::NormalizedHistogram,
+) -> (f64, usize) {
+    let (mut c2, mut n) = (0.0, 0);
+    for k in 0..a.mass.len() {
+        let var = a.sigma[k].powi(2) + b.sigma[k].powi(2);
+        if a.mass[k] + b.mass[k] > 0.0 && var > 0.0 && a.sigma[k] > 0.0 && b.sigma[k] > 0.0 {
+            c2 += (a.mass[k] - b.mass[k]).powi(2) / var;
+            n += 1;
+        }
+    }
+    (c2, n)
+}
+
+#[test]
+fn density_only_rescales_lengths() {
+    // K(·; d, α, ρ) = K(·; ρd, α, 1) with lengths / ρ. In normalised
+    // coordinates (λ = d/2 + 1/ρ) the histograms are equal.
+    let a = config(&[0.9], &[1.0, 3.0], 2.0, 400_000, 21);
+    let b = config(&[0.9], &[2.0, 6.0], 1.0, 400_000, 22);
+    let (da, db) = (doc(&a, None), doc(&b, None));
+    // Same stream, ρ = 2: positions are exactly halved (a power of two), so
+    // the counts are bitwise those of ρ = 1 at 2d.
+    let same_seed = config(&[0.9], &[2.0, 6.0], 1.0, 400_000, 21);
+    assert_eq!(da.tally.cells, doc(&same_seed, None).tally.cells);
+    // Independent streams: χ² per bin, for every class.
+    for id in 0..2 {
+        for class in VertexClass::ALL {
+            let (ha, hb) = (da.histogram(0, id, class), db.histogram(0, id, class));
+            assert!(ha.paths > 2000, "{}", ha.paths);
+            let (c2, n) = chi2(&ha, &hb);
+            assert!(
+                c2 < n as f64 + Z_MC * (2.0 * n as f64).sqrt() + 0.1 * n as f64,
+                "d {} {class:?}: χ² {c2} over {n} bins",
+                ha.d
+            );
+            assert!(
+                (ha.mean_u - hb.mean_u).abs() < 0.02,
+                "{} {}",
+                ha.mean_u,
+                hb.mean_u
+            );
+        }
+    }
+}
+
+#[test]
+fn first_vertex_lies_below_the_entry_point() {
+    // Pencil beam: the first vertex is on the z axis below x_i, so t = s = 0,
+    // u = −(d_p/2)/λ(d_p) exactly (d_p ∈ [0.9, 1.1], the path's own
+    // distance), v = 0.
+    let c = config(&[0.8], &[1.0], 1.0, 200_000, 3);
+    let d = doc(&c, None);
+    let h = d.histogram(0, 0, VertexClass::First);
+    let u_of = |dp: f64| -0.5 * dp / PairGrid::scale(dp, 1.0);
+    let u0 = u_of(1.0);
+    assert!(h.mean_u < u_of(0.9) && h.mean_u > u_of(1.1), "{}", h.mean_u);
+    assert!(
+        (h.mean_u - u0).abs() < 2e-3 && h.mean_v2 < 1e-8,
+        "{} {}",
+        h.mean_u,
+        h.mean_v2
+    );
+    assert!((h.mass.iter().sum::<f64>() + h.overflow - 1.0).abs() < 1e-12);
+    let g = c.grid;
+    let iu = ((u0 + g.extent) / (2.0 * g.extent) * g.nu as f64) as usize;
+    assert!((h.mass[iu * g.nv] - 1.0).abs() < 1e-12);
+    // The last vertex is spread around x_e, the all-vertex kernel in between.
+    let last = d.histogram(0, 0, VertexClass::Last);
+    let all = d.histogram(0, 0, VertexClass::All);
+    assert!(last.mean_u > 0.0 && all.mean_u > u0 && all.mean_u < last.mean_u);
+    assert!(all.mean_vertices > 2.0);
+}
+
+/// Vertices of a heterogeneous walk per texel, for paths that exit with at
+/// least two scatterings inside the disk of `radius` around `centre`.
+struct Scene {
+    medium: Medium,
+    centre: [f64; 2],
+    radius: f64,
+}
+
+impl Scene {
+    /// Does the path contribute, and where are its vertices.
+    fn walk(&self, albedo: &impl AlbedoField, path: u64, vertices: &mut Vec<[f64; 3]>) -> bool {
+        let mut rng = PathRng::new(77, path);
+        let start = launch(&Source::Pencil, self.medium.eta, &mut rng).unwrap();
+        vertices.clear();
+        let (fate, n) = walk_general(&self.medium, albedo, 100_000, start, &mut rng, |v| {
+            vertices.push(v)
+        });
+        match fate {
+            Fate::Exit { x, y } => {
+                n >= 2 && (x - self.centre[0]).hypot(y - self.centre[1]) < self.radius
+            }
+            _ => false,
+        }
+    }
+}
+
+#[test]
+fn vertex_density_is_the_albedo_sensitivity() {
+    // ∂ ln M / ∂ ln α(texel) = E[#vertices in the texel | contributes], with
+    // M the multiple-scattering exitance into a disk. The right side from
+    // the vertex counts, the left from a central finite difference of the
+    // heterogeneous walk (ε = 10 %, common random numbers).
+    let values: Vec<f64> = (0..36)
+        .map(|k| 0.6 + 0.35 * (((k * 7919) % 36) as f64 / 35.0))
+        .collect();
+    let map = TexelMap::new(6, 6, 0.5, values).unwrap();
+    let scene = Scene {
+        medium: Medium::new(0.8, 0.3, 1.5, 1.0, None).unwrap(),
+        centre: [0.75, 0.0],
+        radius: 0.5,
+    };
+    let texels = [
+        map.texel_of(0.1, 0.1),
+        map.texel_of(0.6, -0.1),
+        map.texel_of(0.3, 0.6),
+    ];
+    let n_paths = 3_000_000u64;
+    let eps = 0.1;
+    let base = AlbedoMap::new(map.clone()).unwrap();
+    let perturbed = |(i, j): (usize, usize), f: f64| {
+        let mut m = map.clone();
+        m.values[i * m.nx + j] *= f;
+        AlbedoMap::new(m).unwrap()
+    };
+    let mut v = Vec::new();
+    // Estimator: vertex counts per texel over contributing paths.
+    let (mut contrib, mut sum, mut sq) = (0u64, [0f64; 3], [0f64; 3]);
+    for p in 0..n_paths {
+        if scene.walk(&base, p, &mut v) {
+            contrib += 1;
+            for (k, t) in texels.iter().enumerate() {
+                let c = v.iter().filter(|x| map.texel_of(x[0], x[1]) == *t).count() as f64;
+                sum[k] += c;
+                sq[k] += c * c;
+            }
+        }
+    }
+    let n = contrib as f64;
+    assert!(contrib > 10_000, "{contrib}");
+    for (k, t) in texels.iter().enumerate() {
+        let kern = sum[k] / n;
+        let kern_se = ((sq[k] / n - kern * kern) / n).sqrt();
+        let (plus, minus) = (perturbed(*t, 1.0 + eps), perturbed(*t, 1.0 - eps));
+        let (mut dsum, mut dsq) = (0f64, 0f64);
+        for p in 0..n_paths {
+            let d = scene.walk(&plus, p, &mut v) as i32 - scene.walk(&minus, p, &mut v) as i32;
+            dsum += d as f64;
+            dsq += (d * d) as f64;
+        }
+        let np = n_paths as f64;
+        let m0 = n / np;
+        let fd = dsum / np / (2.0 * eps * m0);
+        let fd_se = ((dsq / np - (dsum / np).powi(2)) / np).sqrt() / (2.0 * eps * m0);
+        eprintln!(
+            "texel {t:?}: vertices/path {kern:.4} ± {kern_se:.4}, ∂ln M/∂ln α {fd:.4} ± {fd_se:.4}"
+        );
+        // Central difference in α (not ln α): O(ε²) relative, < 1 % here.
+        assert!(
+            (fd - kern).abs() < Z_MC * kern_se.hypot(fd_se) + 0.01 * kern,
+            "texel {t:?}: vertices {kern:.4} ± {kern_se:.4}, finite difference {fd:.4} ± {fd_se:.4}"
+        );
+        assert!(kern > 0.05, "texel {t:?} barely visited: {kern}");
+    }
+}
+
+#[test]
+fn hard_cases_stay_finite() {
+    for (albedos, distances, rho) in [
+        (vec![0.0, 1e-9, 1.0 - 1e-9, 1.0], vec![1e-6, 1.0, 50.0], 1.0),
+        (vec![0.5, 0.99], vec![1e-6, 0.5, 50.0], 1e-3),
+        (vec![0.5, 0.99], vec![1e-6, 0.5, 50.0], 1e3),
+    ] {
+        let mut c = config(&albedos, &distances, rho, 20_000, 5);
+        c.max_events = 10_000;
+        let d = doc(&c, None);
+        for ia in 0..albedos.len() {
+            for id in 0..distances.len() {
+                for class in VertexClass::ALL {
+                    let h = d.histogram(ia, id, class);
+                    assert!(
+                        h.mass
+                            .iter()
+                            .chain(&h.sigma)
+                            .all(|x| x.is_finite() && *x >= 0.0),
+                        "α {} d {} ρ {rho}",
+                        albedos[ia],
+                        distances[id]
+                    );
+                    let total = h.mass.iter().sum::<f64>() + h.overflow;
+                    assert!(h.paths == 0 || (total - 1.0).abs() < 1e-9);
+                    assert!(h.mean_u.is_finite() && h.mean_v2.is_finite());
+                }
+            }
+        }
+    }
+    // α = 0: nothing scatters twice.
+    let c = config(&[0.0], &[1.0], 1.0, 20_000, 5);
+    assert_eq!(doc(&c, None).tally.cells[0][0].paths, 0);
+    let _ = threshold_u32(0.5);
+}
+
+#[test]
+fn bad_configurations_are_refused() {
+    let good = config(&[0.5], &[1.0, 2.0], 1.0, 100, 1);
+    assert!(good.validate().is_ok());
+    let mut c = good.clone();
+    c.distances = vec![1.0, 1.1]; // overlapping bins
+    assert!(
+        c.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("--distances")
+    );
+    let mut c = good.clone();
+    c.albedos = vec![1.2];
+    assert!(c.validate().unwrap_err().to_string().contains("--albedo"));
+    let mut c = good;
+    c.density = 0.0;
+    assert!(c.validate().unwrap_err().to_string().contains("--density"));
+}
+
+#[test]
+fn corrupted_kernel_documents_are_named() {
+    let c = config(&[0.5], &[1.0], 1.0, 1000, 1);
+    let d = doc(&c, None);
+    let dir = std::env::temp_dir().join(format!("svk-kern-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let p = dir.join("k.json");
+    svkernel::io::write_json_atomic(&p, &d).unwrap();
+    assert_eq!(KernelDoc::load(&p).unwrap(), d);
+    let text = std::fs::read_to_string(&p).unwrap();
+    std::fs::write(&p, &text[..text.len() / 2]).unwrap();
+    let e = KernelDoc::load(&p).unwrap_err().to_string();
+    assert!(e.contains("k.json") && e.contains("truncated"), "{e}");
+    let mut bad = d.clone();
+    bad.tally.cells[0][0].classes[0].count.pop();
+    svkernel::io::write_json_atomic(&p, &bad).unwrap();
+    let e = KernelDoc::load(&p).unwrap_err().to_string();
+    assert!(e.contains("tally.cells"), "{e}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
