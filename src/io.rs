@@ -62,6 +62,13 @@ pub fn write_json_atomic<T: Serialize>(path: &Path, value: &T) -> Result<()> {
     write_atomic(path, &bytes)
 }
 
+/// Like [`write_json_atomic`] but compact (one line): for large documents
+/// whose arrays would otherwise take one line per number.
+pub fn write_json_compact_atomic<T: Serialize>(path: &Path, value: &T) -> Result<()> {
+    let bytes = serde_json::to_vec(value).map_err(|e| Error::format(path, "(serialise)", e))?;
+    write_atomic(path, &bytes)
+}
+
 /// Reads JSON from `path`; a parse error names the file, the failing key
 /// path where serde reports it, and the line.
 pub fn read_json<T: DeserializeOwned>(path: &Path) -> Result<T> {

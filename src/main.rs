@@ -54,6 +54,28 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Query an aggregation kernel: the learned meta-model or the manual kernel.
+    #[command(allow_negative_numbers = true)]
+    Kernel {
+        /// Pair distance |x_e − x_i| in MFP.
+        #[arg(long)]
+        d: f64,
+        #[arg(long)]
+        albedo: f64,
+        #[arg(long, default_value_t = 1.0)]
+        density: f64,
+        /// all | first | last
+        #[arg(long, default_value = "all")]
+        vertices: String,
+        /// The fixed manual kernel (design §4) instead of the meta-model.
+        #[arg(long)]
+        manual: bool,
+        #[arg(long, default_value = DEFAULT_META)]
+        model: PathBuf,
+        /// Print JSON (the only output format; kept for scripts).
+        #[arg(long)]
+        json: bool,
+    },
     /// End-to-end demo on shipped data.
     Demo {
         #[arg(long, default_value = "out/demo")]
@@ -66,6 +88,8 @@ enum Command {
 
 /// The shipped basis model.
 const DEFAULT_BASIS: &str = "data/profiles/basis.json";
+const DEFAULT_KERNELS: &str = "data/kernels/eta1.5_g0.3_pencil.json";
+const DEFAULT_META: &str = "data/profiles/metamodel.json";
 /// The shipped profiles of the default medium.
 const DEFAULT_PROFILES: &str = "data/profiles/eta1.5_g0.3_pencil";
 
@@ -98,6 +122,22 @@ enum Fit {
         components: usize,
         #[arg(long)]
         out: PathBuf,
+    },
+    /// Fit the kernel meta-model (all and last vertices) to a kernel document.
+    Kernels {
+        #[arg(long = "in", default_value = DEFAULT_KERNELS)]
+        input: PathBuf,
+        #[arg(long, default_value = DEFAULT_META)]
+        out: PathBuf,
+        /// Directory for report.json (default: OUT's directory/metamodel_report)
+        #[arg(long)]
+        report: Option<PathBuf>,
+        /// Gaussian components K (1–5).
+        #[arg(long, default_value_t = 3)]
+        components: usize,
+        /// Polynomial degrees in ln d and sqrt(1 − α), e.g. 3,3.
+        #[arg(long, value_delimiter = ',', default_value = "3,3")]
+        degree: Vec<usize>,
     },
     /// Accuracy of a basis model against a directory of (fresh) profiles.
     Check {
@@ -284,7 +324,7 @@ fn simulate_kernels(a: KernelArgs) -> Result<()> {
     let (tally, wall_s) = config.run(shard, &opts)?;
     let chunks = vec![chunk_range(config.paths, shard)];
     let doc = KernelDoc::new(config, shard, chunks, tally, wall_s, Provenance::current());
-    svkernel::io::write_json_atomic(&a.out, &doc)?;
+    svkernel::io::write_json_compact_atomic(&a.out, &doc)?;
     remove_checkpoint(&a.out)?;
     print_kernel_summary(&doc);
     Ok(())
@@ -394,7 +434,7 @@ fn merge(inputs: Vec<PathBuf>, out: PathBuf) -> Result<()> {
             .map(|p| KernelDoc::load(&p).map(|d| (p, d)))
             .collect::<svkernel::Result<Vec<_>>>()?;
         let doc = kernel::merge(&docs, Provenance::current())?;
-        svkernel::io::write_json_atomic(&out, &doc)?;
+        svkernel::io::write_json_compact_atomic(&out, &doc)?;
         print_kernel_summary(&doc);
         return Ok(());
     }
@@ -489,6 +529,43 @@ fn fit(f: Fit) -> Result<()> {
                 out.display()
             );
         }
+        Fit::Kernels {
+            input,
+            out,
+            report: dir,
+            components,
+            degree,
+        } => {
+            use svkernel::fit::kernel_report;
+            if !(1..=5).contains(&components) {
+                bail!("invalid --components = {components}: must be in 1..=5");
+            }
+            let [dx, dy] = degree[..] else {
+                bail!("invalid --degree: give two degrees, e.g. 3,3");
+            };
+            if dx > 7 || dy > 7 {
+                bail!("invalid --degree {dx},{dy}: each must be <= 7");
+            }
+            let dir = dir.unwrap_or_else(|| {
+                out.parent()
+                    .unwrap_or(std::path::Path::new("."))
+                    .join("metamodel_report")
+            });
+            let r = kernel_report::fit_kernels(&input, &out, &dir, components, (dx, dy))?;
+            println!("{}", kernel_report::aggregation_table(&r.aggregation));
+            for j in &r.joint {
+                println!(
+                    "{}: {} after {} evaluations, χ²/dof = {:.3}, {:.1} s",
+                    j.what, j.termination, j.evaluations, j.chi2_per_dof, j.wall_s
+                );
+            }
+            println!(
+                "wrote {} and {}/report.json in {:.1} s",
+                out.display(),
+                dir.display(),
+                r.wall_s
+            );
+        }
         Fit::Check { model, input, out } => {
             let m = svkernel::metamodel::basis::BasisModel::load(&model)?;
             let rows = report::check(&m, &input)?;
@@ -498,6 +575,49 @@ fn fit(f: Fit) -> Result<()> {
             }
         }
     }
+    Ok(())
+}
+
+fn kernel_query(
+    d: f64,
+    albedo: f64,
+    density: f64,
+    vertices: &str,
+    manual: bool,
+    model: &std::path::Path,
+) -> Result<()> {
+    use svkernel::forward::kernel::VertexClass;
+    if !(d >= 0.0 && d.is_finite()) {
+        bail!("invalid --d = {d}: must be finite and >= 0");
+    }
+    if !(0.0..=1.0).contains(&albedo) {
+        bail!("invalid --albedo = {albedo}: must be in [0, 1]");
+    }
+    if !(density > 0.0 && density.is_finite()) {
+        bail!("invalid --density = {density}: must be finite and > 0");
+    }
+    let class = VertexClass::parse(vertices)?;
+    let (gmm, clamped, source) = if manual {
+        (
+            svkernel::metamodel::kernel::manual_kernel(d),
+            false,
+            "manual".to_string(),
+        )
+    } else {
+        let f = svkernel::metamodel::meta::MetaModelFile::load(model)?;
+        let q = f.eval(class, d, albedo, density);
+        (q.gmm, q.clamped, model.display().to_string())
+    };
+    let v = serde_json::json!({
+        "d": d,
+        "albedo": albedo,
+        "density": density,
+        "vertices": vertices,
+        "model": source,
+        "clamped": clamped,
+        "components": gmm.components,
+    });
+    println!("{}", serde_json::to_string_pretty(&v)?);
     Ok(())
 }
 
@@ -538,6 +658,15 @@ fn main() -> std::process::ExitCode {
             model,
             json: _,
         } => profile_query(albedo, &radii, &model),
+        Command::Kernel {
+            d,
+            albedo,
+            density,
+            vertices,
+            manual,
+            model,
+            json: _,
+        } => kernel_query(d, albedo, density, &vertices, manual, &model),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

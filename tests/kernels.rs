@@ -256,8 +256,8 @@ fn hard_cases_stay_finite() {
         let mut c = config(&albedos, &distances, rho, 20_000, 5);
         c.max_events = 10_000;
         let d = doc(&c, None);
-        for ia in 0..albedos.len() {
-            for id in 0..distances.len() {
+        for (ia, alpha) in albedos.iter().enumerate() {
+            for (id, dist) in distances.iter().enumerate() {
                 for class in VertexClass::ALL {
                     let h = d.histogram(ia, id, class);
                     assert!(
@@ -265,9 +265,7 @@ fn hard_cases_stay_finite() {
                             .iter()
                             .chain(&h.sigma)
                             .all(|x| x.is_finite() && *x >= 0.0),
-                        "α {} d {} ρ {rho}",
-                        albedos[ia],
-                        distances[id]
+                        "α {alpha} d {dist} ρ {rho}"
                     );
                     let total = h.mass.iter().sum::<f64>() + h.overflow;
                     assert!(h.paths == 0 || (total - 1.0).abs() < 1e-9);

@@ -23,5 +23,8 @@
 
 pub mod basis;
 pub mod exp_mixture;
+pub mod gmm;
+pub mod kernel_report;
 pub mod lm;
+pub mod meta;
 pub mod report;

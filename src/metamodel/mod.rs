@@ -3,3 +3,5 @@
 
 pub mod basis;
 pub mod burley;
+pub mod kernel;
+pub mod meta;

@@ -1,0 +1,456 @@
+//! The joint fit of the kernel meta-model (design §3 step 2(c)): the
+//! Gaussian-mixture parameters as tensor Chebyshev polynomials in
+//! (ln d, sqrt(1 − α)) ([`crate::metamodel::meta`]), fitted by LM with exact
+//! Jacobians to every measured histogram at once, initialised from the
+//! per-configuration fits ([`super::gmm`]).
+//!
+//! # Chain rule
+//! Cell c (distance d_c, λ_c = d_c/2 + 1) has the per-configuration problem
+//! [`GmmFit`] in θ_g = (η_2..η_K, t_1..t_K, ln σ_1..ln σ_K). The meta-model
+//! gives θ_m = (ℓ, μ, ς) with θ_m,j = Σ_a C_{ja} B_a(x_c, y_c) and
+//! η = ℓ, t = d_c/2 + λ_c μ, ln σ = ln λ_c + ς, so
+//! ∂r/∂C_{ja} = ∂r/∂θ_g,j · s_j · B_a with s_j = λ_c for the centres and 1
+//! otherwise. A weak ridge (residuals w·C_{ja} for every non-constant basis
+//! term, w = [`RIDGE`]) keeps coefficients that the data do not constrain
+//! (corners of the (d, α) box with no contributing paths) from drifting.
+
+use super::gmm::{GmmFit, KernelHistogram, fit_gmm};
+use super::lm::{Blocks, FitError, FitOptions, FitReport, solve};
+use crate::forward::kernel::{KernelDoc, VertexClass};
+use crate::metamodel::kernel::Gmm;
+use crate::metamodel::meta::MetaModel;
+use levenberg_marquardt::LeastSquaresProblem;
+use nalgebra::{DMatrix, DVector, Dyn, Owned};
+
+/// Weight of the ridge residuals on non-constant coefficients.
+pub const RIDGE: f64 = 0.1;
+/// Relative tolerance (ftol, xtol) of the joint fit.
+pub const META_TOL: f64 = 1e-4;
+/// Cells with fewer contributing paths are left out of the fits.
+pub const MIN_PATHS: u64 = 1000;
+
+/// The histogram of cell (ia, id) of `doc` in absolute pair-frame MFP at the
+/// cell's nominal distance: t = d/2 + λu, |s| = λv (each path was binned in
+/// its own frame, d_p ∈ d(1 ± w), so this is exact in normalised units).
+pub fn histogram_from_doc(
+    doc: &KernelDoc,
+    ia: usize,
+    id: usize,
+    class: VertexClass,
+) -> KernelHistogram {
+    let h = doc.histogram(ia, id, class);
+    let (d, l) = (h.d, h.lambda);
+    KernelHistogram {
+        d,
+        t_edges: h.u_edges.iter().map(|u| 0.5 * d + l * u).collect(),
+        s_edges: h.v_edges.iter().map(|v| l * v).collect(),
+        mass: h.mass,
+        sigma: h.sigma,
+        overflow: h.overflow,
+        overflow_sigma: h.overflow_sigma,
+        paths: h.paths,
+    }
+}
+
+/// One training configuration.
+#[derive(Clone, Debug)]
+pub struct Cell {
+    pub alpha: f64,
+    pub d: f64,
+    pub hist: KernelHistogram,
+}
+
+/// The cells of `doc` (one vertex class) with at least [`MIN_PATHS`] paths.
+/// The document must be at unit density (the meta-model is trained there).
+pub fn cells(doc: &KernelDoc, class: VertexClass) -> Vec<Cell> {
+    let mut out = Vec::new();
+    for (ia, a) in doc.config.albedos.iter().enumerate() {
+        for (id, d) in doc.config.distances.iter().enumerate() {
+            if doc.tally.cells[ia][id].paths >= MIN_PATHS {
+                out.push(Cell {
+                    alpha: *a,
+                    d: *d,
+                    hist: histogram_from_doc(doc, ia, id, class),
+                });
+            }
+        }
+    }
+    out
+}
+
+/// Meta-model shape parameters (ℓ, μ, ς) of a fitted kernel at distance d.
+pub fn meta_params(g: &Gmm, d: f64) -> Vec<f64> {
+    let lambda = 0.5 * d + 1.0;
+    let c = &g.components;
+    let w0 = c[0].weight.max(1e-300);
+    c[1..]
+        .iter()
+        .map(|c| (c.weight.max(1e-300) / w0).ln().clamp(-20.0, 20.0))
+        .chain(c.iter().map(|c| (c.t - 0.5 * d) / lambda))
+        .chain(c.iter().map(|c| (c.sigma / lambda).ln()))
+        .collect()
+}
+
+/// The joint least-squares problem.
+pub struct MetaFit<'a> {
+    pub template: MetaModel,
+    problems: Vec<GmmFit<'a>>,
+    basis: Vec<Vec<f64>>,
+    dists: Vec<f64>,
+    rows: Vec<usize>,
+    coeffs: DVector<f64>,
+}
+
+impl<'a> MetaFit<'a> {
+    /// The problem over `cells` starting from `model`'s coefficients.
+    pub fn new(cells: &'a [Cell], model: MetaModel) -> Self {
+        let mut rows = vec![0];
+        let mut problems = Vec::new();
+        let mut basis = Vec::new();
+        for c in cells {
+            let (xy, _) = model.coordinates(c.d, c.alpha);
+            basis.push(model.basis(xy));
+            let p = GmmFit::new(&c.hist, model.k, DVector::zeros(3 * model.k - 1));
+            rows.push(rows.last().unwrap() + c.hist.mass.len() + 1);
+            problems.push(p);
+        }
+        let coeffs = DVector::from_iterator(
+            model.coeffs.len() * model.n_coeffs(),
+            model.coeffs.iter().flatten().copied(),
+        );
+        let mut f = MetaFit {
+            template: model,
+            problems,
+            basis,
+            dists: cells.iter().map(|c| c.d).collect(),
+            rows,
+            coeffs: coeffs.clone(),
+        };
+        f.set_params(&coeffs);
+        f
+    }
+
+    /// The model at the current coefficients.
+    pub fn model(&self) -> MetaModel {
+        let n = self.template.n_coeffs();
+        MetaModel {
+            coeffs: self
+                .coeffs
+                .as_slice()
+                .chunks(n)
+                .map(|c| c.to_vec())
+                .collect(),
+            ..self.template.clone()
+        }
+    }
+
+    fn ridge_rows(&self) -> usize {
+        (MetaModel::n_params(self.template.k)) * (self.template.n_coeffs() - 1)
+    }
+
+    /// ∂θ_g,j/∂θ_m,j at distance d.
+    fn scale(&self, j: usize, d: f64) -> f64 {
+        let k = self.template.k;
+        if (k - 1..2 * k - 1).contains(&j) {
+            0.5 * d + 1.0
+        } else {
+            1.0
+        }
+    }
+}
+
+impl LeastSquaresProblem<f64, Dyn, Dyn> for MetaFit<'_> {
+    type ResidualStorage = Owned<f64, Dyn>;
+    type JacobianStorage = Owned<f64, Dyn, Dyn>;
+    type ParameterStorage = Owned<f64, Dyn>;
+
+    fn set_params(&mut self, x: &DVector<f64>) {
+        self.coeffs.copy_from(x);
+        let k = self.template.k;
+        let n = self.template.n_coeffs();
+        let np = MetaModel::n_params(k);
+        for (c, p) in self.problems.iter_mut().enumerate() {
+            let d = self.dists[c];
+            let lambda = 0.5 * d + 1.0;
+            let theta = DVector::from_fn(np, |j, _| {
+                let m: f64 = (0..n).map(|a| x[j * n + a] * self.basis[c][a]).sum();
+                if j < k - 1 {
+                    m
+                } else if j < 2 * k - 1 {
+                    0.5 * d + lambda * m
+                } else {
+                    lambda.ln() + m
+                }
+            });
+            p.set_params(&theta);
+        }
+    }
+
+    fn params(&self) -> DVector<f64> {
+        self.coeffs.clone()
+    }
+
+    fn residuals(&self) -> Option<DVector<f64>> {
+        let n = self.template.n_coeffs();
+        let total = self.rows.last().unwrap() + self.ridge_rows();
+        let mut r = DVector::zeros(total);
+        for (c, p) in self.problems.iter().enumerate() {
+            let rc = p.residuals()?;
+            r.rows_mut(self.rows[c], rc.len()).copy_from(&rc);
+        }
+        let mut row = *self.rows.last().unwrap();
+        for j in 0..MetaModel::n_params(self.template.k) {
+            for a in 1..n {
+                r[row] = RIDGE * self.coeffs[j * n + a];
+                row += 1;
+            }
+        }
+        Some(r)
+    }
+
+    fn jacobian(&self) -> Option<DMatrix<f64>> {
+        let n = self.template.n_coeffs();
+        let np = MetaModel::n_params(self.template.k);
+        let total = self.rows.last().unwrap() + self.ridge_rows();
+        let mut jac = DMatrix::zeros(total, np * n);
+        for (c, p) in self.problems.iter().enumerate() {
+            let jc = p.jacobian()?;
+            let r0 = self.rows[c];
+            for j in 0..np {
+                let s = self.scale(j, self.dists[c]);
+                for a in 0..n {
+                    let f = s * self.basis[c][a];
+                    if f == 0.0 {
+                        continue;
+                    }
+                    let src = jc.column(j);
+                    let mut dst = jac.column_mut(j * n + a);
+                    for (i, v) in src.iter().enumerate() {
+                        dst[r0 + i] = f * v;
+                    }
+                }
+            }
+        }
+        let mut row = *self.rows.last().unwrap();
+        for j in 0..np {
+            for a in 1..n {
+                jac[(row, j * n + a)] = RIDGE;
+                row += 1;
+            }
+        }
+        Some(jac)
+    }
+}
+
+impl Blocks for MetaFit<'_> {
+    fn blocks(&self) -> Vec<(String, std::ops::Range<usize>)> {
+        let mut out: Vec<_> = self
+            .problems
+            .iter()
+            .enumerate()
+            .map(|(c, p)| (format!("d={:.3}", p.data.d), self.rows[c]..self.rows[c + 1]))
+            .collect();
+        let last = *self.rows.last().unwrap();
+        out.push(("ridge".into(), last..last + self.ridge_rows()));
+        out
+    }
+}
+
+/// A per-configuration fit: the kernel and its report, or why it failed.
+pub type CellFit = Result<(Gmm, FitReport), FitError>;
+
+/// Per-configuration fits of every cell.
+pub fn per_cell_fits(cells: &[Cell], k: usize) -> Vec<CellFit> {
+    use rayon::prelude::*;
+    cells
+        .par_iter()
+        .map(|c| {
+            let what = format!("GMM α = {} d = {}", c.alpha, c.d);
+            fit_gmm(&what, &c.hist, k, &FitOptions::default())
+        })
+        .collect()
+}
+
+/// Least-squares coefficients of each parameter over the cells that fitted,
+/// with the same ridge: the start of the joint fit.
+pub fn initial_model(
+    cells: &[Cell],
+    fits: &[CellFit],
+    k: usize,
+    deg: (usize, usize),
+) -> Result<MetaModel, FitError> {
+    let ln_d: Vec<f64> = cells.iter().map(|c| c.d.ln()).collect();
+    let alphas: Vec<f64> = cells.iter().map(|c| c.alpha).collect();
+    let range = |v: &[f64]| {
+        [
+            v.iter().copied().fold(f64::INFINITY, f64::min),
+            v.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+        ]
+    };
+    let (ln_d_range, alpha_range) = (range(&ln_d), range(&alphas));
+    let bad = |msg: String| FitError::BadData {
+        what: "meta-model".into(),
+        msg,
+    };
+    if !(ln_d_range[0] < ln_d_range[1] && alpha_range[0] < alpha_range[1]) {
+        return Err(bad("need at least two distances and two albedos".into()));
+    }
+    let mut model = MetaModel {
+        k,
+        deg_x: deg.0,
+        deg_y: deg.1,
+        ln_d_range,
+        alpha_range,
+        coeffs: vec![],
+    };
+    let n = model.n_coeffs();
+    let rows: Vec<(Vec<f64>, Vec<f64>)> = cells
+        .iter()
+        .zip(fits)
+        .filter_map(|(c, f)| {
+            let (g, _) = f.as_ref().ok()?;
+            let (xy, _) = model.coordinates(c.d, c.alpha);
+            Some((model.basis(xy), meta_params(g, c.d)))
+        })
+        .collect();
+    if rows.len() < n {
+        return Err(bad(format!(
+            "{} fitted cells for {n} coefficients per parameter",
+            rows.len()
+        )));
+    }
+    let m = rows.len();
+    let mut a = DMatrix::zeros(m + n - 1, n);
+    for (i, (b, _)) in rows.iter().enumerate() {
+        for j in 0..n {
+            a[(i, j)] = b[j];
+        }
+    }
+    for j in 1..n {
+        a[(m + j - 1, j)] = RIDGE;
+    }
+    let svd = a.svd(true, true);
+    model.coeffs = (0..MetaModel::n_params(k))
+        .map(|p| {
+            let mut y = DVector::zeros(m + n - 1);
+            for (i, (_, t)) in rows.iter().enumerate() {
+                y[i] = t[p];
+            }
+            svd.solve(&y, 1e-12)
+                .map(|c| c.iter().copied().collect())
+                .unwrap_or_else(|_| vec![0.0; n])
+        })
+        .collect();
+    Ok(model)
+}
+
+/// The whole fit of one vertex class: per-cell fits, initial model, joint LM.
+pub fn fit_meta(
+    cells: &[Cell],
+    k: usize,
+    deg: (usize, usize),
+    what: &str,
+) -> Result<(MetaModel, FitReport, Vec<CellFit>), FitError> {
+    let fits = per_cell_fits(cells, k);
+    let init = initial_model(cells, &fits, k, deg)?;
+    // The data resolve the kernels far better than three isotropic Gaussians
+    // can follow (χ²/dof ≫ 1 for the all-vertex kernels at 2e7 paths), so the
+    // joint fit stops at a relative χ² change of `META_TOL` per step instead of
+    // creeping to machine precision: the kernels change by far less than
+    // their aggregation error by then.
+    let opts = FitOptions {
+        patience: 30,
+        tol: META_TOL,
+        allow_nonconvergence: true,
+    };
+    let (p, rep) = solve(what, MetaFit::new(cells, init), &opts)?;
+    Ok((p.model(), rep, fits))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fit::gmm::histogram_of;
+    use crate::fit::lm::jacobian_mismatch;
+
+    /// Synthetic cells from a known meta-model, 1 % errors.
+    fn synthetic(truth: &MetaModel) -> Vec<Cell> {
+        let mut out = Vec::new();
+        for a in [0.3, 0.6, 0.8, 0.95] {
+            for d in [0.2, 0.5, 1.0, 3.0, 8.0] {
+                let g = truth.eval(d, a, 1.0).gmm;
+                let l = 0.5 * d + 1.0;
+                let template = KernelHistogram {
+                    d,
+                    t_edges: (0..=24)
+                        .map(|i| 0.5 * d + l * (-4.0 + i as f64 / 3.0))
+                        .collect(),
+                    s_edges: (0..=12).map(|i| l * i as f64 / 3.0).collect(),
+                    mass: vec![],
+                    sigma: vec![],
+                    overflow: 0.0,
+                    overflow_sigma: 0.0,
+                    paths: 1_000_000,
+                };
+                let mut h = histogram_of(&g, &template);
+                h.sigma = h.mass.iter().map(|m| 0.01 * m + 1e-7).collect();
+                h.overflow_sigma = 0.01 * h.overflow + 1e-7;
+                out.push(Cell {
+                    alpha: a,
+                    d,
+                    hist: h,
+                });
+            }
+        }
+        out
+    }
+
+    fn truth() -> MetaModel {
+        MetaModel {
+            k: 3,
+            deg_x: 1,
+            deg_y: 1,
+            ln_d_range: [0.2f64.ln(), 8f64.ln()],
+            alpha_range: [0.3, 0.95],
+            coeffs: vec![
+                vec![0.7, 0.1, -0.1, 0.0],
+                vec![0.0, 0.2, 0.1, 0.0],
+                vec![-0.45, -0.1, 0.0, 0.0],
+                vec![0.0, 0.0, 0.05, 0.0],
+                vec![0.45, 0.1, 0.0, 0.0],
+                vec![-0.8, 0.1, 0.0, 0.0],
+                vec![-0.3, -0.1, 0.05, 0.0],
+                vec![-0.8, 0.1, 0.0, 0.0],
+            ],
+        }
+    }
+
+    #[test]
+    fn jacobian_matches_numerical() {
+        let t = truth();
+        let cells = synthetic(&t);
+        let mut m = t.clone();
+        for (j, c) in m.coeffs.iter_mut().enumerate() {
+            for (a, v) in c.iter_mut().enumerate() {
+                *v += 0.05 * (((j * 5 + a * 3) % 7) as f64 - 3.0) / 3.0;
+            }
+        }
+        let mut p = MetaFit::new(&cells, m);
+        let err = jacobian_mismatch(&mut p);
+        assert!(err < 1e-6, "{err}");
+    }
+
+    #[test]
+    fn recovers_a_known_meta_model() {
+        let t = truth();
+        let cells = synthetic(&t);
+        let (m, rep, fits) = fit_meta(&cells, 3, (1, 1), "synthetic").unwrap();
+        assert!(fits.iter().all(|f| f.is_ok()));
+        assert!(rep.chi2_per_dof < 0.05, "{rep:?}");
+        for c in &cells {
+            let (a, b) = (t.eval(c.d, c.alpha, 1.0).gmm, m.eval(c.d, c.alpha, 1.0).gmm);
+            let (ha, hb) = (histogram_of(&a, &c.hist), histogram_of(&b, &c.hist));
+            assert!(crate::fit::gmm::l2_error(&ha, &hb) < 1e-3);
+        }
+    }
+}

@@ -1,0 +1,173 @@
+//! The shipped kernel meta-model (issue 5 §2–3) and the `kernel` query.
+
+use std::path::Path;
+use std::process::Command;
+use svkernel::fit::gmm::fit_gmm;
+use svkernel::fit::kernel_report::aggregation_row;
+use svkernel::fit::lm::FitOptions;
+use svkernel::fit::meta::cells;
+use svkernel::forward::kernel::{KernelDoc, VertexClass};
+use svkernel::metamodel::meta::MetaModelFile;
+
+const META: &str = "data/profiles/metamodel.json";
+const KERNELS: &str = "data/kernels/eta1.5_g0.3_pencil.json";
+
+#[test]
+fn shipped_model_gives_valid_kernels_everywhere() {
+    let f = MetaModelFile::load(Path::new(META)).unwrap();
+    for class in VertexClass::ALL {
+        for d in [0.0, 1e-6, 0.05, 0.3, 1.0, 5.0, 10.0, 50.0] {
+            for a in [0.0, 1e-9, 0.2, 0.5, 0.9, 0.99, 1.0 - 1e-9, 1.0] {
+                for rho in [1e-3, 0.5, 1.0, 4.0, 1e3] {
+                    let q = f.eval(class, d, a, rho);
+                    assert!(
+                        q.gmm.is_valid(),
+                        "{class:?} d {d} α {a} ρ {rho}: {:?}",
+                        q.gmm
+                    );
+                    let w: f64 = q.gmm.components.iter().map(|c| c.weight).sum();
+                    assert!((w - 1.0).abs() < 1e-12);
+                    // Inside the trained box nothing is clamped.
+                    let inside = (0.1..=10.0).contains(&(d * rho)) && (0.2..=0.99).contains(&a);
+                    assert_eq!(q.clamped, !inside, "{class:?} d {d} α {a} ρ {rho}");
+                }
+            }
+        }
+    }
+    // Density: K(d, α, ρ) = K(ρd, α, 1) with lengths / ρ.
+    let a = f.eval(VertexClass::All, 0.5, 0.8, 4.0).gmm;
+    let b = f.eval(VertexClass::All, 2.0, 0.8, 1.0).gmm.scaled(0.25);
+    assert_eq!(a, b);
+}
+
+#[test]
+fn learned_kernels_beat_the_manual_kernel_where_it_matters() {
+    // Aggregation error (RMS of α_t over random textures against the
+    // measured histogram) on a spread of training cells.
+    let f = MetaModelFile::load(Path::new(META)).unwrap();
+    let doc = KernelDoc::load(Path::new(KERNELS)).unwrap();
+    for class in [VertexClass::All, VertexClass::Last] {
+        let cs = cells(&doc, class);
+        let (mut wins, mut n, mut sum_meta, mut sum_manual) = (0, 0, 0.0, 0.0);
+        for c in cs.iter().step_by(7) {
+            let q = f.eval(class, c.d, c.alpha, 1.0);
+            let pc = fit_gmm("test", &c.hist, 3, &FitOptions::default()).ok();
+            let row = aggregation_row(class, c, pc.as_ref().map(|x| &x.0), &q.gmm);
+            wins += (row.meta < row.manual) as usize;
+            n += 1;
+            sum_meta += row.meta;
+            sum_manual += row.manual;
+            // The per-configuration fit is the meta-model's ceiling: close to it.
+            if let Some(p) = row.per_config {
+                assert!(row.meta < p + 0.02, "{row:?}");
+            }
+        }
+        assert!(n >= 8);
+        assert!(
+            sum_meta < 0.5 * sum_manual,
+            "{class:?}: {sum_meta} vs {sum_manual}"
+        );
+        assert!(wins * 10 >= n * 8, "{class:?}: meta wins {wins} of {n}");
+    }
+}
+
+#[test]
+fn corrupted_model_files_are_named() {
+    let text = std::fs::read_to_string(META).unwrap();
+    let dir = std::env::temp_dir().join(format!("svk-meta-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let p = dir.join("meta.json");
+    std::fs::write(&p, &text[..text.len() / 2]).unwrap();
+    let e = MetaModelFile::load(&p).unwrap_err().to_string();
+    assert!(e.contains("meta.json") && e.contains("truncated"), "{e}");
+    let mut v: serde_json::Value = serde_json::from_str(&text).unwrap();
+    v["all"]["coeffs"][0].as_array_mut().unwrap().pop();
+    std::fs::write(&p, v.to_string()).unwrap();
+    let e = MetaModelFile::load(&p).unwrap_err().to_string();
+    assert!(e.contains("models.all.coeffs"), "{e}");
+    let mut v: serde_json::Value = serde_json::from_str(&text).unwrap();
+    v["last"]["k"] = 9.into();
+    std::fs::write(&p, v.to_string()).unwrap();
+    assert!(
+        MetaModelFile::load(&p)
+            .unwrap_err()
+            .to_string()
+            .contains("models.last.k")
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+fn query(args: &[&str]) -> (bool, serde_json::Value, String) {
+    let o = Command::new(env!("CARGO_BIN_EXE_svkernel"))
+        .arg("kernel")
+        .args(args)
+        .output()
+        .unwrap();
+    let v = serde_json::from_slice(&o.stdout).unwrap_or(serde_json::Value::Null);
+    (
+        o.status.success(),
+        v,
+        String::from_utf8_lossy(&o.stderr).into(),
+    )
+}
+
+#[test]
+fn kernel_query_command() {
+    let (ok, v, _) = query(&["--d", "1", "--albedo", "0.9", "--json"]);
+    assert!(ok);
+    let comps = v["components"].as_array().unwrap();
+    assert_eq!(comps.len(), 3);
+    let w: f64 = comps.iter().map(|c| c["weight"].as_f64().unwrap()).sum();
+    assert!((w - 1.0).abs() < 1e-12);
+    for c in comps {
+        assert!(c["sigma"].as_f64().unwrap() > 0.0 && c["s"].as_f64() == Some(0.0));
+    }
+    assert_eq!(v["clamped"], false);
+    let (_, v, _) = query(&["--d", "100", "--albedo", "0.9", "--json"]);
+    assert_eq!(v["clamped"], true);
+    let (_, v, _) = query(&["--d", "2", "--albedo", "0.5", "--manual", "--json"]);
+    let w: Vec<f64> = v["components"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["weight"].as_f64().unwrap())
+        .collect();
+    assert_eq!(w, vec![0.25, 0.5, 0.25]);
+    assert_eq!(v["components"][1]["sigma"].as_f64(), Some(0.5 + 0.3 * 2.0));
+    let (_, v, _) = query(&[
+        "--d",
+        "2",
+        "--albedo",
+        "0.5",
+        "--vertices",
+        "first",
+        "--json",
+    ]);
+    assert_eq!(v["components"][0]["t"].as_f64(), Some(0.0));
+    for (args, flag) in [
+        (
+            vec!["--d", "1", "--albedo", "0.5", "--vertices", "middle"],
+            "--vertices",
+        ),
+        (vec!["--d", "-1", "--albedo", "0.5"], "--d"),
+        (vec!["--d", "1", "--albedo", "2"], "--albedo"),
+        (
+            vec!["--d", "1", "--albedo", "0.5", "--density", "0"],
+            "--density",
+        ),
+        (
+            vec![
+                "--d",
+                "1",
+                "--albedo",
+                "0.5",
+                "--model",
+                "/nonexistent/m.json",
+            ],
+            "m.json",
+        ),
+    ] {
+        let (ok, _, err) = query(&args);
+        assert!(!ok && err.contains(flag), "{args:?}: {err}");
+    }
+}
