@@ -139,6 +139,23 @@ enum Fit {
         #[arg(long, value_delimiter = ',', default_value = "3,3")]
         degree: Vec<usize>,
     },
+    /// Export a few cells of the meta-model fit (residuals, Jᵀr, Jacobian
+    /// columns) and one per-configuration GMM fit, for tools/jax_check.py
+    /// and tools/nlopt_check.py --gmm.
+    ExportKernels {
+        #[arg(long = "in", default_value = DEFAULT_KERNELS)]
+        input: PathBuf,
+        #[arg(long, default_value = DEFAULT_META)]
+        model: PathBuf,
+        /// all | last
+        #[arg(long, default_value = "all")]
+        vertices: String,
+        /// Cells to export (spread over the training set).
+        #[arg(long, default_value_t = 6)]
+        cells: usize,
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Accuracy of a basis model against a directory of (fresh) profiles.
     Check {
         #[arg(long, default_value = DEFAULT_BASIS)]
@@ -564,6 +581,34 @@ fn fit(f: Fit) -> Result<()> {
                 out.display(),
                 dir.display(),
                 r.wall_s
+            );
+        }
+        Fit::ExportKernels {
+            input,
+            model,
+            vertices,
+            cells,
+            out,
+        } => {
+            use svkernel::forward::kernel::{KernelDoc, VertexClass};
+            let class = VertexClass::parse(&vertices)?;
+            if class == VertexClass::First {
+                bail!("invalid --vertices first: the first-vertex kernel is exact (no fit)");
+            }
+            let doc = KernelDoc::load(&input)?;
+            let f = svkernel::metamodel::meta::MetaModelFile::load(&model)?;
+            let all = svkernel::fit::meta::cells(&doc, class);
+            let step = (all.len() / cells.max(1)).max(1);
+            let picked: Vec<_> = all.into_iter().step_by(step).take(cells.max(1)).collect();
+            let m = if class == VertexClass::All { &f.all } else { &f.last };
+            let v = svkernel::fit::meta::export_problem(&picked, m, 8)?;
+            svkernel::io::write_json_compact_atomic(&out, &v)?;
+            println!(
+                "exported {} cells ({} residuals, χ² = {}) to {}",
+                picked.len(),
+                v["residuals"].as_array().map_or(0, |a| a.len()),
+                v["chi2"],
+                out.display()
             );
         }
         Fit::Check { model, input, out } => {

@@ -132,16 +132,15 @@ impl<'a> MetaFit<'a> {
 
     /// The model at the current coefficients.
     pub fn model(&self) -> MetaModel {
-        let n = self.template.n_coeffs();
-        MetaModel {
-            coeffs: self
-                .coeffs
-                .as_slice()
-                .chunks(n)
-                .map(|c| c.to_vec())
-                .collect(),
-            ..self.template.clone()
-        }
+        let t = &self.template;
+        let n = t.n_coeffs();
+        MetaModel::new(
+            t.k,
+            (t.deg_x, t.deg_y),
+            t.ln_d_range,
+            t.alpha_range,
+            self.coeffs.as_slice().chunks(n).map(|c| c.to_vec()).collect(),
+        )
     }
 
     fn ridge_rows(&self) -> usize {
@@ -295,22 +294,15 @@ pub fn initial_model(
     if !(ln_d_range[0] < ln_d_range[1] && alpha_range[0] < alpha_range[1]) {
         return Err(bad("need at least two distances and two albedos".into()));
     }
-    let mut model = MetaModel {
-        k,
-        deg_x: deg.0,
-        deg_y: deg.1,
-        ln_d_range,
-        alpha_range,
-        coeffs: vec![],
-    };
-    let n = model.n_coeffs();
+    let grid = MetaModel::new(k, deg, ln_d_range, alpha_range, vec![]);
+    let n = grid.n_coeffs();
     let rows: Vec<(Vec<f64>, Vec<f64>)> = cells
         .iter()
         .zip(fits)
         .filter_map(|(c, f)| {
             let (g, _) = f.as_ref().ok()?;
-            let (xy, _) = model.coordinates(c.d, c.alpha);
-            Some((model.basis(xy), meta_params(g, c.d)))
+            let (xy, _) = grid.coordinates(c.d, c.alpha);
+            Some((grid.basis(xy), meta_params(g, c.d)))
         })
         .collect();
     if rows.len() < n {
@@ -330,7 +322,7 @@ pub fn initial_model(
         a[(m + j - 1, j)] = RIDGE;
     }
     let svd = a.svd(true, true);
-    model.coeffs = (0..MetaModel::n_params(k))
+    let coeffs = (0..MetaModel::n_params(k))
         .map(|p| {
             let mut y = DVector::zeros(m + n - 1);
             for (i, (_, t)) in rows.iter().enumerate() {
@@ -341,7 +333,7 @@ pub fn initial_model(
                 .unwrap_or_else(|_| vec![0.0; n])
         })
         .collect();
-    Ok(model)
+    Ok(MetaModel::new(k, deg, ln_d_range, alpha_range, coeffs))
 }
 
 /// The whole fit of one vertex class: per-cell fits, initial model, joint LM.
@@ -406,13 +398,12 @@ mod tests {
     }
 
     fn truth() -> MetaModel {
-        MetaModel {
-            k: 3,
-            deg_x: 1,
-            deg_y: 1,
-            ln_d_range: [0.2f64.ln(), 8f64.ln()],
-            alpha_range: [0.3, 0.95],
-            coeffs: vec![
+        MetaModel::new(
+            3,
+            (1, 1),
+            [0.2f64.ln(), 8f64.ln()],
+            [0.3, 0.95],
+            vec![
                 vec![0.7, 0.1, -0.1, 0.0],
                 vec![0.0, 0.2, 0.1, 0.0],
                 vec![-0.45, -0.1, 0.0, 0.0],
@@ -422,19 +413,20 @@ mod tests {
                 vec![-0.3, -0.1, 0.05, 0.0],
                 vec![-0.8, 0.1, 0.0, 0.0],
             ],
-        }
+        )
     }
 
     #[test]
     fn jacobian_matches_numerical() {
         let t = truth();
         let cells = synthetic(&t);
-        let mut m = t.clone();
-        for (j, c) in m.coeffs.iter_mut().enumerate() {
+        let mut coeffs = t.coeffs.clone();
+        for (j, c) in coeffs.iter_mut().enumerate() {
             for (a, v) in c.iter_mut().enumerate() {
                 *v += 0.05 * (((j * 5 + a * 3) % 7) as f64 - 3.0) / 3.0;
             }
         }
+        let m = MetaModel::new(3, (1, 1), t.ln_d_range, t.alpha_range, coeffs);
         let mut p = MetaFit::new(&cells, m);
         let err = jacobian_mismatch(&mut p);
         assert!(err < 1e-6, "{err}");
@@ -453,4 +445,55 @@ mod tests {
             assert!(crate::fit::gmm::l2_error(&ha, &hb) < 1e-3);
         }
     }
+}
+
+/// Everything `tools/jax_check.py` and `tools/nlopt_check.py --gmm` need to
+/// re-implement the weighted residuals independently: for a few cells the
+/// histogram (edges, masses, floored standard errors), the cell's basis row
+/// and distance; the meta-model's coefficients; the Rust residual vector,
+/// the gradient Jᵀr and a few Jacobian columns at those coefficients; and one
+/// per-configuration GMM fit (θ in the GmmFit convention, χ²).
+pub fn export_problem(cells: &[Cell], model: &MetaModel, k_cols: usize) -> Result<serde_json::Value, FitError> {
+    let mut p = MetaFit::new(cells, model.clone());
+    let r = p.residuals().ok_or_else(|| FitError::BadData {
+        what: "export".into(),
+        msg: "non-finite residuals".into(),
+    })?;
+    let j = p.jacobian().ok_or_else(|| FitError::BadData {
+        what: "export".into(),
+        msg: "non-finite Jacobian".into(),
+    })?;
+    let grad = j.transpose() * &r;
+    let n = j.ncols();
+    let cols: Vec<usize> = (0..k_cols.min(n)).map(|i| i * n / k_cols.min(n).max(1)).collect();
+    let cell_json: Vec<serde_json::Value> = cells
+        .iter()
+        .zip(&p.basis)
+        .map(|(c, b)| {
+            serde_json::json!({
+                "alpha": c.alpha, "d": c.d, "basis": b,
+                "t_edges": c.hist.t_edges, "s_edges": c.hist.s_edges,
+                "mass": c.hist.mass, "overflow": c.hist.overflow,
+                "scale": c.hist.floored_sigma(),
+            })
+        })
+        .collect();
+    // One per-configuration fit, for the NLopt cross-check.
+    let c0 = &cells[cells.len() / 2];
+    let (g, rep) = fit_gmm("export", &c0.hist, model.k, &FitOptions::default())?;
+    Ok(serde_json::json!({
+        "k": model.k, "deg": [model.deg_x, model.deg_y], "ridge": RIDGE,
+        "coeffs": model.coeffs,
+        "cells": cell_json,
+        "residuals": r.as_slice(),
+        "chi2": r.norm_squared(),
+        "grad": grad.as_slice(),
+        "jac_cols": cols,
+        "jac": cols.iter().map(|&c| j.column(c).iter().copied().collect::<Vec<f64>>()).collect::<Vec<_>>(),
+        "gmm_fit": {
+            "cell": cells.len() / 2,
+            "theta": GmmFit::theta_of(&g).as_slice(),
+            "chi2": rep.chi2,
+        },
+    }))
 }

@@ -28,7 +28,9 @@
 //! Density: K(·; d, α, ρ) = K(·; ρd, α, 1) with lengths divided by ρ
 //! ([`super::kernel::scale_for_density`]).
 
-use super::kernel::{Component, Gmm, scale_for_density};
+use super::kernel::{Component, Gmm, optical_distance};
+#[cfg(doc)]
+use super::kernel::scale_for_density;
 use crate::error::{Error, Result};
 use crate::forward::kernel::VertexClass;
 use crate::provenance::Provenance;
@@ -45,9 +47,13 @@ pub const MAX_DEGREE: usize = 7;
 pub const DELTA_SIGMA: f64 = 1e-6;
 /// Largest number of mixture components.
 pub const MAX_K: usize = 5;
+const _: () = assert!(3 * MAX_K - 1 <= PACK);
+
+/// Parameters padded to a fixed width for the evaluation's inner loop.
+const PACK: usize = 16;
 
 /// One meta-model (one vertex class).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct MetaModel {
     /// Mixture components K.
     pub k: usize,
@@ -60,6 +66,28 @@ pub struct MetaModel {
     /// `coeffs[j]` for parameter j (ℓ_1..ℓ_{K−1}, μ_0..μ_{K−1}, ς_0..ς_{K−1}),
     /// `(deg_x + 1)·(deg_y + 1)` values, index `a·(deg_y + 1) + b`.
     pub coeffs: Vec<Vec<f64>>,
+    /// Derived constants for evaluation (built on first use; not serialised).
+    #[serde(skip)]
+    prepared: std::sync::OnceLock<Prepared>,
+}
+
+/// Evaluation constants of a [`MetaModel`].
+#[derive(Clone, Debug)]
+struct Prepared {
+    /// `packed[i][j]` = coeffs[j][i], padded to [`PACK`] parameters.
+    packed: Vec<[f64; PACK]>,
+    /// x = ln d·x_scale + x_offset, y = sqrt(1 − α)·y_scale + y_offset.
+    x_scale: f64,
+    x_offset: f64,
+    y_scale: f64,
+    y_offset: f64,
+}
+
+impl PartialEq for MetaModel {
+    fn eq(&self, o: &Self) -> bool {
+        (self.k, self.deg_x, self.deg_y, self.ln_d_range, self.alpha_range, &self.coeffs)
+            == (o.k, o.deg_x, o.deg_y, o.ln_d_range, o.alpha_range, &o.coeffs)
+    }
 }
 
 /// The result of a query.
@@ -87,6 +115,26 @@ fn cheb(t: f64, n: usize) -> [f64; MAX_DEGREE + 1] {
 }
 
 impl MetaModel {
+    /// A model from its coefficients (`coeffs[j]` per parameter, see the
+    /// field docs); validity is checked by [`MetaModelFile::load`].
+    pub fn new(
+        k: usize,
+        (deg_x, deg_y): (usize, usize),
+        ln_d_range: [f64; 2],
+        alpha_range: [f64; 2],
+        coeffs: Vec<Vec<f64>>,
+    ) -> Self {
+        MetaModel {
+            k,
+            deg_x,
+            deg_y,
+            ln_d_range,
+            alpha_range,
+            coeffs,
+            prepared: Default::default(),
+        }
+    }
+
     /// Number of shape parameters 3K − 1.
     pub fn n_params(k: usize) -> usize {
         3 * k - 1
@@ -100,17 +148,32 @@ impl MetaModel {
     /// The normalised coordinates (x, y) of (d at unit density, α), clamped
     /// to [−1, 1]², and whether clamping happened.
     pub fn coordinates(&self, d: f64, alpha: f64) -> ([f64; 2], bool) {
-        let lnd = d.max(1e-300).ln();
-        let [l0, l1] = self.ln_d_range;
-        let x = 2.0 * (lnd - l0) / (l1 - l0) - 1.0;
-        let (ya, yb) = (
-            (1.0 - self.alpha_range[1]).max(0.0).sqrt(),
-            (1.0 - self.alpha_range[0]).max(0.0).sqrt(),
-        );
-        let y = 2.0 * ((1.0 - alpha.clamp(0.0, 1.0)).sqrt() - ya) / (yb - ya) - 1.0;
+        let p = self.prepared();
+        let x = d.max(1e-300).ln().mul_add(p.x_scale, p.x_offset);
+        let y = (1.0 - alpha.clamp(0.0, 1.0))
+            .sqrt()
+            .mul_add(p.y_scale, p.y_offset);
         let clamp = |v: f64| if v.is_nan() { 0.0 } else { v.clamp(-1.0, 1.0) };
         let (xc, yc) = (clamp(x), clamp(y));
-        ([xc, yc], xc != x || yc != y)
+        // Clamped only if moved by more than rounding (the box edges map to ±1).
+        ([xc, yc], (xc - x).abs() > 1e-12 || (yc - y).abs() > 1e-12)
+    }
+
+    fn prepared(&self) -> &Prepared {
+        self.prepared.get_or_init(|| {
+            let [l0, l1] = self.ln_d_range;
+            let ya = (1.0 - self.alpha_range[1]).max(0.0).sqrt();
+            let yb = (1.0 - self.alpha_range[0]).max(0.0).sqrt();
+            Prepared {
+                packed: (0..self.n_coeffs())
+                    .map(|i| std::array::from_fn(|j| self.coeffs.get(j).map_or(0.0, |c| c[i])))
+                    .collect(),
+                x_scale: 2.0 / (l1 - l0),
+                x_offset: -2.0 * l0 / (l1 - l0) - 1.0,
+                y_scale: 2.0 / (yb - ya),
+                y_offset: -2.0 * ya / (yb - ya) - 1.0,
+            }
+        })
     }
 
     /// The tensor basis T_a(x)·T_b(y) at (x, y), in coefficient order.
@@ -131,49 +194,67 @@ impl MetaModel {
     pub fn params_at(&self, [x, y]: [f64; 2]) -> [f64; 3 * MAX_K - 1] {
         let (tx, ty) = (cheb(x, self.deg_x), cheb(y, self.deg_y));
         let ny = self.deg_y + 1;
-        let mut out = [0.0; 3 * MAX_K - 1];
-        for (o, c) in out.iter_mut().zip(&self.coeffs) {
-            let mut acc = 0.0;
-            for (a, txa) in tx.iter().take(self.deg_x + 1).enumerate() {
-                let row = &c[a * ny..(a + 1) * ny];
-                let mut inner = 0.0;
-                for (cb, tyb) in row.iter().zip(&ty) {
-                    inner += cb * tyb;
+        let packed = &self.prepared().packed;
+        // One pass over the basis with a fixed-width accumulator: the adds
+        // of different parameters are independent and vectorise.
+        let mut acc = [0.0; PACK];
+        for a in 0..=self.deg_x {
+            for b in 0..ny {
+                let basis = tx[a] * ty[b];
+                for (o, c) in acc.iter_mut().zip(&packed[a * ny + b]) {
+                    *o = c.mul_add(basis, *o);
                 }
-                acc += txa * inner;
             }
-            *o = acc;
         }
-        out
+        std::array::from_fn(|j| acc[j])
     }
 
     /// The mixture from shape parameters θ at unit-density distance d.
     pub fn gmm_from_params(k: usize, theta: &[f64], d: f64) -> Gmm {
+        Self::gmm_scaled(k, theta, d, 1.0)
+    }
+
+    /// [`Self::gmm_from_params`] with every length multiplied by `scale`
+    /// (one allocation: the component list).
+    #[inline]
+    fn gmm_scaled(k: usize, theta: &[f64], d: f64, scale: f64) -> Gmm {
         let lambda = 0.5 * d + 1.0;
         let logit = |i: usize| if i == 0 { 0.0 } else { theta[i - 1] };
         let m = (0..k).map(logit).fold(f64::NEG_INFINITY, f64::max);
-        let e: Vec<f64> = (0..k).map(|i| (logit(i) - m).exp()).collect();
-        let z: f64 = e.iter().sum();
-        let components = (0..k)
-            .map(|i| Component {
-                weight: e[i] / z,
-                t: 0.5 * d + lambda * theta[k - 1 + i],
+        // The 2K exponentials (softmax, widths) four at a time (SIMD exp of
+        // `wide`, ≈ 1 ulp).
+        let mut args = [0.0; 4 * (2 * MAX_K).div_ceil(4)];
+        for i in 0..k {
+            args[i] = logit(i) - m;
+            args[k + i] = theta[2 * k - 1 + i].clamp(-30.0, 30.0);
+        }
+        let mut e = [0.0; 4 * (2 * MAX_K).div_ceil(4)];
+        for (o, a) in e.chunks_exact_mut(4).zip(args.chunks_exact(4)).take((2 * k).div_ceil(4)) {
+            o.copy_from_slice(&wide::f64x4::from([a[0], a[1], a[2], a[3]]).exp().to_array());
+        }
+        let inv_z = 1.0 / e[..k].iter().sum::<f64>();
+        let mut components = Vec::with_capacity(k);
+        for i in 0..k {
+            components.push(Component {
+                weight: e[i] * inv_z,
+                t: scale * (0.5 * d + lambda * theta[k - 1 + i]),
                 s: 0.0,
-                sigma: lambda * theta[2 * k - 1 + i].clamp(-30.0, 30.0).exp(),
-            })
-            .collect();
+                sigma: scale * lambda * e[k + i],
+            });
+        }
         Gmm { components }
     }
 
     /// The kernel at (d, α, ρ): evaluated at the optical distance ρd and
-    /// unit density, then all lengths divided by ρ.
+    /// unit density, then all lengths divided by ρ (the law of
+    /// [`scale_for_density`], applied while building the mixture).
+    #[inline]
     pub fn eval(&self, d: f64, alpha: f64, rho: f64) -> KernelQuery {
-        let d1 = d * rho;
+        let d1 = optical_distance(d, rho);
         let (xy, clamped) = self.coordinates(d1, alpha);
         let theta = self.params_at(xy);
-        let gmm = Self::gmm_from_params(self.k, &theta, d1.max(0.0));
         KernelQuery {
-            gmm: scale_for_density(&gmm, rho),
+            gmm: Self::gmm_scaled(self.k, &theta, d1.max(0.0), 1.0 / rho),
             clamped,
         }
     }
@@ -303,6 +384,7 @@ mod tests {
             ln_d_range: [0.1f64.ln(), 10f64.ln()],
             alpha_range: [0.2, 0.99],
             coeffs,
+            prepared: Default::default(),
         }
     }
 
@@ -327,7 +409,7 @@ mod tests {
     fn density_scaling_law() {
         let m = model(3);
         let a = m.eval(0.5, 0.8, 2.0).gmm;
-        let b = m.eval(1.0, 0.8, 1.0).gmm.scaled(0.5);
+        let b = crate::metamodel::kernel::scale_for_density(&m.eval(1.0, 0.8, 1.0).gmm, 2.0);
         for (x, y) in a.components.iter().zip(&b.components) {
             assert!((x.weight - y.weight).abs() < 1e-15);
             assert!((x.t - y.t).abs() < 1e-12 && (x.sigma - y.sigma).abs() < 1e-12);
