@@ -454,7 +454,7 @@ mod tests {
 /// the gradient Jᵀr and a few Jacobian columns at those coefficients; and one
 /// per-configuration GMM fit (θ in the GmmFit convention, χ²).
 pub fn export_problem(cells: &[Cell], model: &MetaModel, k_cols: usize) -> Result<serde_json::Value, FitError> {
-    let mut p = MetaFit::new(cells, model.clone());
+    let p = MetaFit::new(cells, model.clone());
     let r = p.residuals().ok_or_else(|| FitError::BadData {
         what: "export".into(),
         msg: "non-finite residuals".into(),
