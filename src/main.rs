@@ -600,7 +600,11 @@ fn fit(f: Fit) -> Result<()> {
             let all = svkernel::fit::meta::cells(&doc, class);
             let step = (all.len() / cells.max(1)).max(1);
             let picked: Vec<_> = all.into_iter().step_by(step).take(cells.max(1)).collect();
-            let m = if class == VertexClass::All { &f.all } else { &f.last };
+            let m = if class == VertexClass::All {
+                &f.all
+            } else {
+                &f.last
+            };
             let v = svkernel::fit::meta::export_problem(&picked, m, 8)?;
             svkernel::io::write_json_compact_atomic(&out, &v)?;
             println!(

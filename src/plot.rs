@@ -234,3 +234,70 @@ pub fn profile_plot(doc: &ProfileDoc, path: &Path) -> Result<()> {
         ],
     )
 }
+
+/// One panel of a heat-map grid: `values[i * ny + j]` over an nx × ny grid
+/// (i along x, j along y, y drawn upward).
+pub struct Panel {
+    pub title: String,
+    pub nx: usize,
+    pub ny: usize,
+    pub values: Vec<f64>,
+}
+
+/// Draws panels in a grid of `cols` columns (PNG), each with its own colour
+/// scale: a perceptual ramp (dark blue → yellow) of sqrt(value / max).
+pub fn heatmaps(path: &Path, title: &str, panels: &[Panel], cols: usize) -> Result<()> {
+    let cols = cols.max(1);
+    let rows = panels.len().div_ceil(cols);
+    let (pw, ph) = (220u32, 170u32);
+    let tmp = crate::io::temp_sibling(path);
+    let draw = || -> std::result::Result<(), Box<dyn std::error::Error>> {
+        let root =
+            BitMapBackend::new(&tmp, (pw * cols as u32, ph * rows as u32 + 40)).into_drawing_area();
+        root.fill(&WHITE)?;
+        let (head, body) = root.split_vertically(40);
+        head.titled(title, ("sans-serif", 20))?;
+        let areas = body.split_evenly((rows, cols));
+        for (p, area) in panels.iter().zip(areas) {
+            let (cap, plot) = area.split_vertically(20);
+            cap.titled(&p.title, ("sans-serif", 13))?;
+            let plot = plot.margin(2, 6, 6, 6);
+            let (w, h) = plot.dim_in_pixel();
+            let max = p.values.iter().copied().fold(0.0f64, f64::max).max(1e-300);
+            for i in 0..p.nx {
+                for j in 0..p.ny {
+                    let v = (p.values[i * p.ny + j].max(0.0) / max).sqrt();
+                    let x0 = (i as u32 * w / p.nx as u32) as i32;
+                    let x1 = ((i as u32 + 1) * w / p.nx as u32) as i32;
+                    let y1 = (h - j as u32 * h / p.ny as u32) as i32;
+                    let y0 = (h - (j as u32 + 1) * h / p.ny as u32) as i32;
+                    plot.draw(&Rectangle::new([(x0, y0), (x1, y1)], ramp(v).filled()))?;
+                }
+            }
+        }
+        root.present()?;
+        Ok(())
+    };
+    draw().map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        Error::format(path, "(plot)", e)
+    })?;
+    crate::io::commit(&tmp, path)
+}
+
+/// Colour ramp for v ∈ [0, 1]: dark blue → teal → yellow (viridis-like).
+fn ramp(v: f64) -> RGBColor {
+    let stops = [
+        (68.0, 1.0, 84.0),
+        (59.0, 82.0, 139.0),
+        (33.0, 145.0, 140.0),
+        (94.0, 201.0, 98.0),
+        (253.0, 231.0, 37.0),
+    ];
+    let x = v.clamp(0.0, 1.0) * (stops.len() - 1) as f64;
+    let k = (x.floor() as usize).min(stops.len() - 2);
+    let f = x - k as f64;
+    let (a, b) = (stops[k], stops[k + 1]);
+    let mix = |p: f64, q: f64| (p + (q - p) * f).round() as u8;
+    RGBColor(mix(a.0, b.0), mix(a.1, b.1), mix(a.2, b.2))
+}

@@ -268,6 +268,7 @@ pub fn fit_kernels(
     };
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
     crate::io::write_json_atomic(&dir.join("report.json"), &report)?;
+    kernel_plots(&doc, &file, &report.aggregation, dir)?;
     Ok(report)
 }
 
@@ -290,4 +291,158 @@ pub fn aggregation_table(rows: &[AggregationRow]) -> String {
         );
     }
     s
+}
+
+/// Albedos and distances shown in the report's plots.
+const PLOT_ALPHAS: [f64; 3] = [0.6, 0.92, 0.99];
+const PLOT_DISTANCES: [f64; 3] = [0.35, 1.6, 6.5];
+
+/// The report's plots: kernel heat maps (measured | meta-model | manual) on
+/// an (α, d) grid in the pair frame, the meta-model's parameters against d,
+/// and the aggregation errors against d.
+pub fn kernel_plots(
+    doc: &KernelDoc,
+    file: &MetaModelFile,
+    rows: &[AggregationRow],
+    dir: &Path,
+) -> Result<()> {
+    use crate::plot::{Axes, Panel, Series, chart, heatmaps};
+    let find = |v: &[f64], x: f64| v.iter().position(|y| (y - x).abs() < 1e-9);
+    for class in [VertexClass::All, VertexClass::Last] {
+        let mut panels = Vec::new();
+        for a in PLOT_ALPHAS {
+            for d in PLOT_DISTANCES {
+                let (Some(ia), Some(id)) =
+                    (find(&doc.config.albedos, a), find(&doc.config.distances, d))
+                else {
+                    continue;
+                };
+                let h = super::meta::histogram_from_doc(doc, ia, id, class);
+                let meta = file.eval(class, d, a, 1.0).gmm;
+                let manual = manual_kernel(d);
+                let (nt, ns) = (h.t_edges.len() - 1, h.s_edges.len() - 1);
+                // Unfold |s| into s ∈ (−S, S): rows j < ns mirror the upper half.
+                let unfold = |m: &[f64]| -> Vec<f64> {
+                    let mut out = Vec::with_capacity(nt * 2 * ns);
+                    for i in 0..nt {
+                        for j in 0..2 * ns {
+                            let jj = if j < ns { ns - 1 - j } else { j - ns };
+                            out.push(m[i * ns + jj]);
+                        }
+                    }
+                    out
+                };
+                for (name, g) in [
+                    ("measured", None),
+                    ("meta-model", Some(&meta)),
+                    ("manual", Some(&manual)),
+                ] {
+                    let m = match g {
+                        None => h.mass.clone(),
+                        Some(g) => histogram_of(g, &h).mass,
+                    };
+                    panels.push(Panel {
+                        title: format!("{name} α={a} d={d}"),
+                        nx: nt,
+                        ny: 2 * ns,
+                        values: unfold(&m),
+                    });
+                }
+            }
+        }
+        heatmaps(
+            &dir.join(format!("kernels_{class:?}.png").to_lowercase()),
+            &format!(
+                "{class:?} vertices: measured | meta-model | manual, t → (x_i left of centre, x_e right), s ↑, sqrt colour scale"
+            ),
+            &panels,
+            9,
+        )?;
+    }
+    // Parameters of the "all" meta-model against d, per albedo.
+    let ds: Vec<f64> = (0..60)
+        .map(|i| 0.1 * 100f64.powf(i as f64 / 59.0))
+        .collect();
+    let m = &file.all;
+    let mut w = Vec::new();
+    let mut t = Vec::new();
+    let mut s = Vec::new();
+    for (ci, a) in PLOT_ALPHAS.iter().enumerate() {
+        for k in 0..m.k {
+            let pick = |f: &dyn Fn(&crate::metamodel::kernel::Gmm, f64) -> f64| {
+                ds.iter()
+                    .map(|&d| (d, f(&m.eval(d, *a, 1.0).gmm, d)))
+                    .collect::<Vec<_>>()
+            };
+            let color = ci * m.k + k;
+            let label = format!("α={a} k={k}");
+            w.push(Series::line(
+                label.clone(),
+                pick(&|g, _| g.components[k].weight),
+                color,
+            ));
+            t.push(Series::line(
+                label.clone(),
+                pick(&|g, d| g.components[k].t / d),
+                color,
+            ));
+            s.push(Series::line(
+                label,
+                pick(&|g, _| g.components[k].sigma),
+                color,
+            ));
+        }
+    }
+    let axes = |title: &str, y: &str, log_y: bool| Axes {
+        title: title.into(),
+        x_label: "d (MFP)".into(),
+        y_label: y.into(),
+        log_x: true,
+        log_y,
+    };
+    chart(
+        &dir.join("weights.png"),
+        &axes("meta-model (all vertices): weights", "w_k", false),
+        &w,
+    )?;
+    chart(
+        &dir.join("centres.png"),
+        &axes("meta-model (all vertices): centres", "t_k / d", false),
+        &t,
+    )?;
+    chart(
+        &dir.join("widths.png"),
+        &axes("meta-model (all vertices): widths", "σ_k (MFP)", true),
+        &s,
+    )?;
+    // Aggregation errors against d.
+    for class in [VertexClass::All, VertexClass::Last] {
+        let mut series = Vec::new();
+        for (ci, a) in PLOT_ALPHAS.iter().enumerate() {
+            let sel: Vec<&AggregationRow> = rows
+                .iter()
+                .filter(|r| r.class == class && (r.alpha - a).abs() < 1e-9)
+                .collect();
+            series.push(Series::line(
+                format!("meta-model α={a}"),
+                sel.iter().map(|r| (r.d, r.meta)).collect(),
+                ci,
+            ));
+            series.push(Series::dashed(
+                format!("manual α={a}"),
+                sel.iter().map(|r| (r.d, r.manual)).collect(),
+                ci,
+            ));
+        }
+        chart(
+            &dir.join(format!("aggregation_{class:?}.png").to_lowercase()),
+            &axes(
+                &format!("aggregation error RMS(α_t − α_t[measured]), {class:?} vertices"),
+                "RMS error (albedo units)",
+                true,
+            ),
+            &series,
+        )?;
+    }
+    Ok(())
 }

@@ -139,7 +139,11 @@ impl<'a> MetaFit<'a> {
             (t.deg_x, t.deg_y),
             t.ln_d_range,
             t.alpha_range,
-            self.coeffs.as_slice().chunks(n).map(|c| c.to_vec()).collect(),
+            self.coeffs
+                .as_slice()
+                .chunks(n)
+                .map(|c| c.to_vec())
+                .collect(),
         )
     }
 
@@ -453,7 +457,11 @@ mod tests {
 /// and distance; the meta-model's coefficients; the Rust residual vector,
 /// the gradient Jᵀr and a few Jacobian columns at those coefficients; and one
 /// per-configuration GMM fit (θ in the GmmFit convention, χ²).
-pub fn export_problem(cells: &[Cell], model: &MetaModel, k_cols: usize) -> Result<serde_json::Value, FitError> {
+pub fn export_problem(
+    cells: &[Cell],
+    model: &MetaModel,
+    k_cols: usize,
+) -> Result<serde_json::Value, FitError> {
     let p = MetaFit::new(cells, model.clone());
     let r = p.residuals().ok_or_else(|| FitError::BadData {
         what: "export".into(),
@@ -465,7 +473,9 @@ pub fn export_problem(cells: &[Cell], model: &MetaModel, k_cols: usize) -> Resul
     })?;
     let grad = j.transpose() * &r;
     let n = j.ncols();
-    let cols: Vec<usize> = (0..k_cols.min(n)).map(|i| i * n / k_cols.min(n).max(1)).collect();
+    let cols: Vec<usize> = (0..k_cols.min(n))
+        .map(|i| i * n / k_cols.min(n).max(1))
+        .collect();
     let cell_json: Vec<serde_json::Value> = cells
         .iter()
         .zip(&p.basis)

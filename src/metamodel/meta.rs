@@ -28,9 +28,9 @@
 //! Density: K(·; d, α, ρ) = K(·; ρd, α, 1) with lengths divided by ρ
 //! ([`super::kernel::scale_for_density`]).
 
-use super::kernel::{Component, Gmm, optical_distance};
 #[cfg(doc)]
 use super::kernel::scale_for_density;
+use super::kernel::{Component, Gmm, optical_distance};
 use crate::error::{Error, Result};
 use crate::forward::kernel::VertexClass;
 use crate::provenance::Provenance;
@@ -85,8 +85,21 @@ struct Prepared {
 
 impl PartialEq for MetaModel {
     fn eq(&self, o: &Self) -> bool {
-        (self.k, self.deg_x, self.deg_y, self.ln_d_range, self.alpha_range, &self.coeffs)
-            == (o.k, o.deg_x, o.deg_y, o.ln_d_range, o.alpha_range, &o.coeffs)
+        (
+            self.k,
+            self.deg_x,
+            self.deg_y,
+            self.ln_d_range,
+            self.alpha_range,
+            &self.coeffs,
+        ) == (
+            o.k,
+            o.deg_x,
+            o.deg_y,
+            o.ln_d_range,
+            o.alpha_range,
+            &o.coeffs,
+        )
     }
 }
 
@@ -229,7 +242,11 @@ impl MetaModel {
             args[k + i] = theta[2 * k - 1 + i].clamp(-30.0, 30.0);
         }
         let mut e = [0.0; 4 * (2 * MAX_K).div_ceil(4)];
-        for (o, a) in e.chunks_exact_mut(4).zip(args.chunks_exact(4)).take((2 * k).div_ceil(4)) {
+        for (o, a) in e
+            .chunks_exact_mut(4)
+            .zip(args.chunks_exact(4))
+            .take((2 * k).div_ceil(4))
+        {
             o.copy_from_slice(&wide::f64x4::from([a[0], a[1], a[2], a[3]]).exp().to_array());
         }
         let inv_z = 1.0 / e[..k].iter().sum::<f64>();
