@@ -363,6 +363,63 @@ pub fn fit_meta(
     Ok((p.model(), rep, fits))
 }
 
+/// Everything `tools/jax_check.py` and `tools/nlopt_check.py --gmm` need to
+/// re-implement the weighted residuals independently: for a few cells the
+/// histogram (edges, masses, floored standard errors), the cell's basis row
+/// and distance; the meta-model's coefficients; the Rust residual vector,
+/// the gradient Jᵀr and a few Jacobian columns at those coefficients; and one
+/// per-configuration GMM fit (θ in the GmmFit convention, χ²).
+pub fn export_problem(
+    cells: &[Cell],
+    model: &MetaModel,
+    k_cols: usize,
+) -> Result<serde_json::Value, FitError> {
+    let p = MetaFit::new(cells, model.clone());
+    let r = p.residuals().ok_or_else(|| FitError::BadData {
+        what: "export".into(),
+        msg: "non-finite residuals".into(),
+    })?;
+    let j = p.jacobian().ok_or_else(|| FitError::BadData {
+        what: "export".into(),
+        msg: "non-finite Jacobian".into(),
+    })?;
+    let grad = j.transpose() * &r;
+    let n = j.ncols();
+    let cols: Vec<usize> = (0..k_cols.min(n))
+        .map(|i| i * n / k_cols.min(n).max(1))
+        .collect();
+    let cell_json: Vec<serde_json::Value> = cells
+        .iter()
+        .zip(&p.basis)
+        .map(|(c, b)| {
+            serde_json::json!({
+                "alpha": c.alpha, "d": c.d, "basis": b,
+                "t_edges": c.hist.t_edges, "s_edges": c.hist.s_edges,
+                "mass": c.hist.mass, "overflow": c.hist.overflow,
+                "scale": c.hist.floored_sigma(),
+            })
+        })
+        .collect();
+    // One per-configuration fit, for the NLopt cross-check.
+    let c0 = &cells[cells.len() / 2];
+    let (g, rep) = fit_gmm("export", &c0.hist, model.k, &FitOptions::default())?;
+    Ok(serde_json::json!({
+        "k": model.k, "deg": [model.deg_x, model.deg_y], "ridge": RIDGE,
+        "coeffs": model.coeffs,
+        "cells": cell_json,
+        "residuals": r.as_slice(),
+        "chi2": r.norm_squared(),
+        "grad": grad.as_slice(),
+        "jac_cols": cols,
+        "jac": cols.iter().map(|&c| j.column(c).iter().copied().collect::<Vec<f64>>()).collect::<Vec<_>>(),
+        "gmm_fit": {
+            "cell": cells.len() / 2,
+            "theta": GmmFit::theta_of(&g).as_slice(),
+            "chi2": rep.chi2,
+        },
+    }))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -449,61 +506,4 @@ mod tests {
             assert!(crate::fit::gmm::l2_error(&ha, &hb) < 1e-3);
         }
     }
-}
-
-/// Everything `tools/jax_check.py` and `tools/nlopt_check.py --gmm` need to
-/// re-implement the weighted residuals independently: for a few cells the
-/// histogram (edges, masses, floored standard errors), the cell's basis row
-/// and distance; the meta-model's coefficients; the Rust residual vector,
-/// the gradient Jᵀr and a few Jacobian columns at those coefficients; and one
-/// per-configuration GMM fit (θ in the GmmFit convention, χ²).
-pub fn export_problem(
-    cells: &[Cell],
-    model: &MetaModel,
-    k_cols: usize,
-) -> Result<serde_json::Value, FitError> {
-    let p = MetaFit::new(cells, model.clone());
-    let r = p.residuals().ok_or_else(|| FitError::BadData {
-        what: "export".into(),
-        msg: "non-finite residuals".into(),
-    })?;
-    let j = p.jacobian().ok_or_else(|| FitError::BadData {
-        what: "export".into(),
-        msg: "non-finite Jacobian".into(),
-    })?;
-    let grad = j.transpose() * &r;
-    let n = j.ncols();
-    let cols: Vec<usize> = (0..k_cols.min(n))
-        .map(|i| i * n / k_cols.min(n).max(1))
-        .collect();
-    let cell_json: Vec<serde_json::Value> = cells
-        .iter()
-        .zip(&p.basis)
-        .map(|(c, b)| {
-            serde_json::json!({
-                "alpha": c.alpha, "d": c.d, "basis": b,
-                "t_edges": c.hist.t_edges, "s_edges": c.hist.s_edges,
-                "mass": c.hist.mass, "overflow": c.hist.overflow,
-                "scale": c.hist.floored_sigma(),
-            })
-        })
-        .collect();
-    // One per-configuration fit, for the NLopt cross-check.
-    let c0 = &cells[cells.len() / 2];
-    let (g, rep) = fit_gmm("export", &c0.hist, model.k, &FitOptions::default())?;
-    Ok(serde_json::json!({
-        "k": model.k, "deg": [model.deg_x, model.deg_y], "ridge": RIDGE,
-        "coeffs": model.coeffs,
-        "cells": cell_json,
-        "residuals": r.as_slice(),
-        "chi2": r.norm_squared(),
-        "grad": grad.as_slice(),
-        "jac_cols": cols,
-        "jac": cols.iter().map(|&c| j.column(c).iter().copied().collect::<Vec<f64>>()).collect::<Vec<_>>(),
-        "gmm_fit": {
-            "cell": cells.len() / 2,
-            "theta": GmmFit::theta_of(&g).as_slice(),
-            "chi2": rep.chi2,
-        },
-    }))
 }
