@@ -156,6 +156,24 @@ enum Fit {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Kernels across a density step (ρ = 1 | 4, a vertical plane halfway
+    /// between x_i and x_e), measured with delta tracking, against the
+    /// density-scaled homogeneous meta-model kernel.
+    DensityStep {
+        #[arg(long, default_value = DEFAULT_META)]
+        model: PathBuf,
+        #[arg(long, value_delimiter = ',', default_value = "0.6,0.9,0.99")]
+        albedos: Vec<f64>,
+        #[arg(long, value_delimiter = ',', default_value = "0.5,1,2,4")]
+        distances: Vec<f64>,
+        #[arg(long, default_value = "1e7", value_parser = parse_count)]
+        paths: u64,
+        #[arg(long, default_value_t = 11)]
+        seed: u64,
+        /// Also write the rows as JSON.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Accuracy of a basis model against a directory of (fresh) profiles.
     Check {
         #[arg(long, default_value = DEFAULT_BASIS)]
@@ -614,6 +632,40 @@ fn fit(f: Fit) -> Result<()> {
                 v["chi2"],
                 out.display()
             );
+        }
+        Fit::DensityStep {
+            model,
+            albedos,
+            distances,
+            paths,
+            seed,
+            out,
+        } => {
+            use svkernel::fit::kernel_report::density_step_experiment;
+            for a in &albedos {
+                Medium::default_with_albedo(*a)?;
+            }
+            if let Some(d) = distances.iter().find(|d| !(**d > 0.0 && d.is_finite())) {
+                bail!("invalid --distances: {d} must be finite and > 0");
+            }
+            let f = svkernel::metamodel::meta::MetaModelFile::load(&model)?;
+            let start = std::time::Instant::now();
+            let rows = density_step_experiment(&f, &albedos, &distances, paths, seed);
+            println!(
+                "| α | d | paths | plain ρ̄=1 | ρ̄=4 | endpoint mean ρ̄=2.5 | kernel-weighted ρ̄ | noise |"
+            );
+            println!("|---|---|---|---|---|---|---|---|");
+            for r in &rows {
+                let p = &r.predictions;
+                println!(
+                    "| {} | {} | {} | {:.4} | {:.4} | {:.4} | {:.4} (ρ̄={:.2}) | {:.4} |",
+                    r.alpha, r.d, r.paths, p[0].2, p[1].2, p[2].2, p[3].2, p[3].1, r.noise
+                );
+            }
+            println!("{:.1} s", start.elapsed().as_secs_f64());
+            if let Some(out) = out {
+                svkernel::io::write_json_atomic(&out, &rows)?;
+            }
         }
         Fit::Check { model, input, out } => {
             let m = svkernel::metamodel::basis::BasisModel::load(&model)?;

@@ -320,3 +320,77 @@ fn corrupted_kernel_documents_are_named() {
     assert!(e.contains("tally.cells"), "{e}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A constant density map walked with delta tracking is bitwise the plain
+/// walk at that density (no null collisions: p = 1).
+#[test]
+fn delta_tracking_with_constant_density_is_the_plain_walk() {
+    use svkernel::forward::maps::DensityMap;
+    use svkernel::forward::walk::{UniformAlbedo, walk_delta};
+    let medium = Medium::new(0.9, 0.3, 1.5, 2.0, None).unwrap();
+    let albedo = UniformAlbedo(threshold_u32(0.9));
+    let density = DensityMap::new(TexelMap::new(3, 3, 1.0, vec![2.0; 9]).unwrap()).unwrap();
+    for path in 0..20_000 {
+        let (mut r1, mut r2) = (PathRng::new(4, path), PathRng::new(4, path));
+        let s1 = launch(&Source::Pencil, 1.5, &mut r1).unwrap();
+        let s2 = launch(&Source::Pencil, 1.5, &mut r2).unwrap();
+        let (mut v1, mut v2) = (Vec::new(), Vec::new());
+        let a = walk_general(&medium, &albedo, 10_000, s1, &mut r1, |v| v1.push(v));
+        let b = walk_delta(&medium, &albedo, &density, 10_000, s2, &mut r2, |v| {
+            v2.push(v)
+        });
+        assert_eq!(a, b);
+        assert_eq!(v1, v2);
+    }
+}
+
+/// Null collisions are unbiased: a majorant four times the density (one far
+/// texel at 4ρ) leaves the exitance statistics unchanged.
+#[test]
+fn null_collisions_do_not_bias_the_walk() {
+    use svkernel::forward::maps::DensityMap;
+    use svkernel::forward::walk::{UniformAlbedo, walk_delta};
+    let medium = Medium::new(0.9, 0.3, 1.5, 1.0, None).unwrap();
+    let albedo = UniformAlbedo(threshold_u32(0.9));
+    let mut values = vec![1.0; 9];
+    values[0] = 4.0; // texel (0, 0) at x < −500, y > 500: never reached
+    let density = DensityMap::new(TexelMap::new(3, 3, 1000.0, values).unwrap()).unwrap();
+    let n = 400_000u64;
+    let run = |delta: bool, seed: u64| {
+        let (mut exits, mut r_sum, mut r2_sum) = (0u64, 0.0, 0.0);
+        for path in 0..n {
+            let mut rng = PathRng::new(seed, path);
+            let s = launch(&Source::Pencil, 1.5, &mut rng).unwrap();
+            let (fate, _) = if delta {
+                walk_delta(&medium, &albedo, &density, 100_000, s, &mut rng, |_| {})
+            } else {
+                walk_general(&medium, &albedo, 100_000, s, &mut rng, |_| {})
+            };
+            if let Fate::Exit { x, y } = fate {
+                exits += 1;
+                let r = x.hypot(y);
+                r_sum += r;
+                r2_sum += r * r;
+            }
+        }
+        let p = exits as f64 / n as f64;
+        let mean_r = r_sum / exits as f64;
+        let var_r = r2_sum / exits as f64 - mean_r * mean_r;
+        (
+            p,
+            (p * (1.0 - p) / n as f64).sqrt(),
+            mean_r,
+            (var_r / exits as f64).sqrt(),
+        )
+    };
+    let (p1, s1, r1, e1) = run(false, 1);
+    let (p2, s2, r2, e2) = run(true, 2);
+    assert!(
+        (p1 - p2).abs() < Z_MC * s1.hypot(s2),
+        "{p1} ± {s1} vs {p2} ± {s2}"
+    );
+    assert!(
+        (r1 - r2).abs() < Z_MC * e1.hypot(e2),
+        "{r1} ± {e1} vs {r2} ± {e2}"
+    );
+}

@@ -385,9 +385,9 @@ pub fn export_problem(
     })?;
     let grad = j.transpose() * &r;
     let n = j.ncols();
-    let cols: Vec<usize> = (0..k_cols.min(n))
-        .map(|i| i * n / k_cols.min(n).max(1))
-        .collect();
+    // Columns spread over parameters and basis terms (a stride coprime to
+    // the number of basis terms), so higher-order terms are checked too.
+    let cols: Vec<usize> = (0..k_cols.min(n)).map(|i| (5 + i * 37) % n).collect();
     let cell_json: Vec<serde_json::Value> = cells
         .iter()
         .zip(&p.basis)

@@ -220,6 +220,100 @@ impl CellTally {
     }
 }
 
+impl CellTally {
+    /// Adds one contributing path from x_i = 0 to `exit` with scattering
+    /// vertices `vertices` (at least one), in its own pair frame with
+    /// normalisation length `lambda`. `bins` is scratch space.
+    pub fn add_path(
+        &mut self,
+        grid: &PairGrid,
+        exit: [f64; 2],
+        lambda: f64,
+        vertices: &[[f64; 2]],
+        bins: &mut Vec<usize>,
+    ) {
+        let n = vertices.len() as u64;
+        self.paths += 1;
+        self.events += n;
+        self.events_sq += n * n;
+        let d = exit[0].hypot(exit[1]);
+        let (ex, ey) = (exit[0] / d, exit[1] / d);
+        let frame = |p: [f64; 2]| {
+            let t = p[0] * ex + p[1] * ey;
+            let s = -p[0] * ey + p[1] * ex;
+            ((t - 0.5 * d) / lambda, s.abs() / lambda)
+        };
+        bins.clear();
+        for p in vertices {
+            let (u, v) = frame(*p);
+            bins.push(grid.index(u, v));
+            self.classes[VertexClass::All.slot()].add_moment(u, v);
+        }
+        bins.sort_unstable();
+        self.classes[VertexClass::All.slot()].add_path(bins);
+        for (class, p) in [
+            (VertexClass::First, vertices[0]),
+            (VertexClass::Last, vertices[vertices.len() - 1]),
+        ] {
+            let (u, v) = frame(p);
+            let c = &mut self.classes[class.slot()];
+            c.add_path(&[grid.index(u, v)]);
+            c.add_moment(u, v);
+        }
+    }
+
+    /// Adds another cell's counts.
+    pub fn merge(&mut self, b: &CellTally) {
+        self.paths += b.paths;
+        self.events += b.events;
+        self.events_sq += b.events_sq;
+        for (ca, cb) in self.classes.iter_mut().zip(&b.classes) {
+            ca.merge(cb);
+        }
+    }
+
+    /// The normalised histogram of one class (see [`KernelDoc::histogram`]).
+    pub fn normalized(
+        &self,
+        grid: &PairGrid,
+        class: VertexClass,
+        albedo: f64,
+        d: f64,
+        lambda: f64,
+    ) -> NormalizedHistogram {
+        let cl = &self.classes[class.slot()];
+        let n = self.paths.max(1) as f64;
+        let total = cl.vertices();
+        let mean_vertices = total as f64 / n;
+        let norm = mean_vertices.max(f64::MIN_POSITIVE);
+        let stat = |b: usize| {
+            let m = cl.count[b] as f64 / n;
+            let var = (cl.sq[b] as f64 / n - m * m).max(0.0);
+            (m / norm, (var / n).sqrt() / norm)
+        };
+        let bins = grid.bins();
+        let (mass, sigma): (Vec<f64>, Vec<f64>) = (0..bins).map(stat).unzip();
+        let (overflow, overflow_sigma) = stat(bins);
+        let nv = total.max(1) as f64;
+        NormalizedHistogram {
+            albedo,
+            d,
+            lambda,
+            class,
+            u_edges: grid.u_edges(),
+            v_edges: grid.v_edges(),
+            mass,
+            sigma,
+            overflow,
+            overflow_sigma,
+            paths: self.paths,
+            mean_vertices,
+            mean_u: cl.sum_u_q as f64 / MOMENT_Q / nv,
+            mean_v2: cl.sum_v2_q as f64 / MOMENT_Q / nv,
+        }
+    }
+}
+
 /// The tally of a kernel simulation: `cells[albedo][distance]`.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct KernelTally {
@@ -252,12 +346,7 @@ impl Tally for KernelTally {
         self.paths += other.paths;
         for (ra, rb) in self.cells.iter_mut().zip(&other.cells) {
             for (a, b) in ra.iter_mut().zip(rb) {
-                a.paths += b.paths;
-                a.events += b.events;
-                a.events_sq += b.events_sq;
-                for (ca, cb) in a.classes.iter_mut().zip(&b.classes) {
-                    ca.merge(cb);
-                }
+                a.merge(b);
             }
         }
     }
@@ -389,34 +478,13 @@ impl KernelConfig {
                 let Some(id) = self.distance_bin(d) else {
                     continue;
                 };
-                let cell = &mut tally.cells[ia][id];
-                cell.paths += 1;
-                cell.events += n as u64;
-                cell.events_sq += n as u64 * n as u64;
-                let (ex, ey) = (x / d, y / d);
-                let lambda = PairGrid::scale(d, mfp);
-                let frame = |p: [f64; 2]| {
-                    let t = p[0] * ex + p[1] * ey;
-                    let s = -p[0] * ey + p[1] * ex;
-                    ((t - 0.5 * d) / lambda, s.abs() / lambda)
-                };
-                bins.clear();
-                for p in &vertices {
-                    let (u, v) = frame(*p);
-                    bins.push(self.grid.index(u, v));
-                    cell.classes[VertexClass::All.slot()].add_moment(u, v);
-                }
-                bins.sort_unstable();
-                cell.classes[VertexClass::All.slot()].add_path(&bins);
-                for (class, p) in [
-                    (VertexClass::First, vertices[0]),
-                    (VertexClass::Last, vertices[vertices.len() - 1]),
-                ] {
-                    let (u, v) = frame(p);
-                    let c = &mut cell.classes[class.slot()];
-                    c.add_path(&[self.grid.index(u, v)]);
-                    c.add_moment(u, v);
-                }
+                tally.cells[ia][id].add_path(
+                    &self.grid,
+                    [x, y],
+                    PairGrid::scale(d, mfp),
+                    &vertices,
+                    &mut bins,
+                );
             }
         }
         tally
@@ -585,37 +653,13 @@ impl KernelDoc {
     /// Var(n_b) = Σn_b²/N − (Σn_b/N)² (exact for first/last, where n̄ = 1).
     pub fn histogram(&self, ia: usize, id: usize, class: VertexClass) -> NormalizedHistogram {
         let c = &self.config;
-        let cell = &self.tally.cells[ia][id];
-        let cl = &cell.classes[class.slot()];
-        let n = cell.paths.max(1) as f64;
-        let total = cl.vertices();
-        let mean_vertices = total as f64 / n;
-        let norm = mean_vertices.max(f64::MIN_POSITIVE);
-        let stat = |b: usize| {
-            let m = cl.count[b] as f64 / n;
-            let var = (cl.sq[b] as f64 / n - m * m).max(0.0);
-            (m / norm, (var / n).sqrt() / norm)
-        };
-        let bins = c.grid.bins();
-        let (mass, sigma): (Vec<f64>, Vec<f64>) = (0..bins).map(stat).unzip();
-        let (overflow, overflow_sigma) = stat(bins);
-        let nv = total.max(1) as f64;
-        NormalizedHistogram {
-            albedo: c.albedos[ia],
-            d: c.distances[id],
-            lambda: PairGrid::scale(c.distances[id], 1.0 / c.density),
+        self.tally.cells[ia][id].normalized(
+            &c.grid,
             class,
-            u_edges: c.grid.u_edges(),
-            v_edges: c.grid.v_edges(),
-            mass,
-            sigma,
-            overflow,
-            overflow_sigma,
-            paths: cell.paths,
-            mean_vertices,
-            mean_u: cl.sum_u_q as f64 / MOMENT_Q / nv,
-            mean_v2: cl.sum_v2_q as f64 / MOMENT_Q / nv,
-        }
+            c.albedos[ia],
+            c.distances[id],
+            PairGrid::scale(c.distances[id], 1.0 / c.density),
+        )
     }
 }
 
@@ -686,5 +730,75 @@ mod sparse {
                 .ok_or_else(|| D::Error::custom(format!("index {i} outside len {}", sp.len)))? = x;
         }
         Ok(v)
+    }
+}
+
+/// A kernel measurement in a heterogeneous medium for one pair direction:
+/// pencil beam at x_i = 0, paths with ≥ `min_order` scatterings that exit at
+/// |x_e| ∈ d(1 ± w) with azimuth within `wedge` radians of +x, walked with
+/// delta tracking ([`super::walk::walk_delta`]) through `albedo` and
+/// `density`. Histograms in the pair frame with normalisation length
+/// `lambda` (fixed, since ρ varies).
+pub struct DirectedKernel<'a, A, D> {
+    pub medium: Medium,
+    pub albedo: &'a A,
+    pub density: &'a D,
+    pub d: f64,
+    pub rel_width: f64,
+    pub wedge: f64,
+    pub min_order: u32,
+    pub lambda: f64,
+    pub grid: PairGrid,
+    pub paths: u64,
+    pub seed: u64,
+    pub max_events: u32,
+}
+
+impl<A: super::walk::AlbedoField + Sync, D: super::walk::DensityField + Sync>
+    DirectedKernel<'_, A, D>
+{
+    /// Simulates every chunk (rayon) and merges them in chunk order.
+    pub fn run(&self) -> CellTally {
+        use rayon::prelude::*;
+        let chunks = self.paths.div_ceil(runner::CHUNK_PATHS);
+        let parts: Vec<CellTally> = (0..chunks).into_par_iter().map(|c| self.chunk(c)).collect();
+        let mut total = CellTally::new(&self.grid);
+        for p in &parts {
+            total.merge(p);
+        }
+        total
+    }
+
+    fn chunk(&self, c: u64) -> CellTally {
+        let (first, count) = chunk_paths(self.paths, c);
+        let mut cell = CellTally::new(&self.grid);
+        let mut vertices: Vec<[f64; 2]> = Vec::new();
+        let mut bins = Vec::new();
+        for path in first..first + count {
+            let mut rng = PathRng::new(self.seed, path);
+            let Some(start) = launch(&Source::Pencil, self.medium.eta, &mut rng) else {
+                continue;
+            };
+            vertices.clear();
+            let (fate, n) = super::walk::walk_delta(
+                &self.medium,
+                self.albedo,
+                self.density,
+                self.max_events,
+                start,
+                &mut rng,
+                |v| vertices.push([v[0], v[1]]),
+            );
+            let Fate::Exit { x, y } = fate else { continue };
+            let r = x.hypot(y);
+            if n < self.min_order
+                || (r - self.d).abs() > self.rel_width * self.d
+                || y.atan2(x).abs() > self.wedge
+            {
+                continue;
+            }
+            cell.add_path(&self.grid, [x, y], self.lambda, &vertices, &mut bins);
+        }
+        cell
     }
 }

@@ -8,7 +8,7 @@
 //! y ∈ (ny·τ/2 − (i+1)τ, ny·τ/2 − iτ].
 
 use super::rng::threshold_u32;
-use super::walk::AlbedoField;
+use super::walk::{AlbedoField, DensityField};
 use crate::error::{Error, Result};
 
 /// A scalar map over the surface (one channel).
@@ -91,6 +91,34 @@ impl AlbedoField for AlbedoMap {
     fn threshold(&self, x: f64, y: f64) -> u64 {
         let (i, j) = self.map.texel_of(x, y);
         self.thresholds[i * self.map.nx + j]
+    }
+}
+
+/// A density map for the walk: values > 0, majorant = the largest value.
+#[derive(Clone, Debug)]
+pub struct DensityMap {
+    pub map: TexelMap,
+    majorant: f64,
+}
+
+impl DensityMap {
+    /// Validates every density: finite and > 0.
+    pub fn new(map: TexelMap) -> Result<Self> {
+        if let Some(r) = map.values.iter().find(|r| !(r.is_finite() && **r > 0.0)) {
+            return Err(Error::param("density map value", r, "finite and > 0"));
+        }
+        let majorant = map.values.iter().copied().fold(0.0, f64::max);
+        Ok(DensityMap { map, majorant })
+    }
+}
+
+impl DensityField for DensityMap {
+    #[inline]
+    fn density(&self, x: f64, y: f64) -> f64 {
+        self.map.at(x, y)
+    }
+    fn majorant(&self) -> f64 {
+        self.majorant
     }
 }
 

@@ -196,6 +196,99 @@ pub fn walk_general<A: AlbedoField>(
     }
 }
 
+/// Where the walk reads the density ρ(x, y) (2.5D, piecewise constant) and
+/// its majorant ρ_max ≥ ρ everywhere (for delta tracking).
+pub trait DensityField {
+    fn density(&self, x: f64, y: f64) -> f64;
+    fn majorant(&self) -> f64;
+}
+
+/// The walk through a heterogeneous medium: albedo from `albedo`, density
+/// from `density` (σ_t = ρ(x, y)), phase, η and slab thickness from `medium`.
+///
+/// # Delta tracking (Woodcock), unbiased
+/// Flights are sampled with the majorant σ̄ = ρ_max: s = −ln u_a/σ̄. A
+/// tentative collision at x is real with probability p = ρ(x)/σ̄, decided by
+/// u_c < p; otherwise it is a null collision and the path flies on unchanged
+/// (memorylessness makes this exact for any piecewise-constant ρ ≤ σ̄). At a
+/// real collision u_c/p is again uniform on [0, 1) and drives the HG
+/// sampling; b decides absorption and the azimuth exactly as in [`walk`].
+/// Every step (real, null or wall) consumes one triple (a, b, c). With a
+/// constant density the walk is bitwise [`walk_general`] at that density.
+pub fn walk_delta<A: AlbedoField, D: DensityField>(
+    medium: &Medium,
+    albedo: &A,
+    density: &D,
+    max_events: u32,
+    start: Launched,
+    rng: &mut PathRng,
+    mut visit: impl FnMut(Vec3),
+) -> (Fate, u32) {
+    let sigma_bar = density.majorant();
+    let inv_eta = 1.0 / medium.eta;
+    let bottom = medium.thickness.map(|l| -l);
+    let [mut x, mut y, mut z] = start.position;
+    let mut w = start.direction;
+    let mut n = 0u32;
+    // Null collisions are bounded too (a path in vanishing density would
+    // otherwise take ~σ̄/ρ steps per real collision): 64× the event cap.
+    let mut steps = 0u64;
+    let max_steps = 64 * max_events as u64 + 1_000_000;
+    loop {
+        steps += 1;
+        if steps > max_steps {
+            return (Fate::Truncated, n);
+        }
+        let (a, b, c) = (rng.next_u32(), rng.next_u32(), rng.next_u32());
+        let s = -unit_open0_f64(a).ln() / sigma_bar;
+        let to_wall = if w[2] > 0.0 {
+            -z / w[2]
+        } else if let (Some(zb), true) = (bottom, w[2] < 0.0) {
+            (zb - z) / w[2]
+        } else {
+            f64::INFINITY
+        };
+        if s >= to_wall {
+            x += w[0] * to_wall;
+            y += w[1] * to_wall;
+            let at_top = w[2] > 0.0;
+            z = if at_top { 0.0 } else { bottom.unwrap_or(0.0) };
+            if unit_f64(b) < fresnel_dielectric(w[2].abs(), inv_eta) {
+                w[2] = -w[2];
+                continue;
+            }
+            return (
+                if at_top {
+                    Fate::Exit { x, y }
+                } else {
+                    Fate::Transmitted
+                },
+                n,
+            );
+        }
+        x += w[0] * s;
+        y += w[1] * s;
+        z += w[2] * s;
+        let p = density.density(x, y) / sigma_bar;
+        let uc = unit_f64(c);
+        if uc >= p {
+            continue; // null collision
+        }
+        let alpha_threshold = albedo.threshold(x, y);
+        if (b as u64) >= alpha_threshold {
+            return (Fate::Absorbed, n);
+        }
+        n += 1;
+        visit([x, y, z]);
+        if n >= max_events {
+            return (Fate::Truncated, n);
+        }
+        let cos_theta = sample_hg_cos(medium.g, uc / p);
+        let phi = 2.0 * PI * (b as f64 + 0.5) / alpha_threshold as f64;
+        w = rotate_direction(w, cos_theta, phi);
+    }
+}
+
 /// Adds one finished path to the tally.
 #[inline]
 pub fn record(tally: &mut ProfileTally, bins: &RadialBins, fate: Fate, events: u32) {
