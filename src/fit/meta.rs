@@ -25,7 +25,7 @@ use nalgebra::{DMatrix, DVector, Dyn, Owned};
 /// Weight of the ridge residuals on non-constant coefficients.
 pub const RIDGE: f64 = 0.1;
 /// Relative tolerance (ftol, xtol) of the joint fit.
-pub const META_TOL: f64 = 1e-4;
+pub const META_TOL: f64 = 1e-3;
 /// Cells with fewer contributing paths are left out of the fits.
 pub const MIN_PATHS: u64 = 1000;
 
@@ -352,8 +352,9 @@ pub fn fit_meta(
     // The data resolve the kernels far better than three isotropic Gaussians
     // can follow (χ²/dof ≫ 1 for the all-vertex kernels at 2e7 paths), so the
     // joint fit stops at a relative χ² change of `META_TOL` per step instead of
-    // creeping to machine precision: the kernels change by far less than
-    // their aggregation error by then.
+    // creeping to machine precision. Measured on the shipped data: tol 1e-3
+    // takes 26 s and gives mean aggregation errors 0.0046 (all) / 0.0030
+    // (last); tol 1e-4 takes 53 s for 0.0045 / 0.0027.
     let opts = FitOptions {
         patience: 30,
         tol: META_TOL,
