@@ -33,6 +33,16 @@ fn kernel(c: &mut Criterion) {
             black_box(model.eval(black_box(d), black_box(a), black_box(r)))
         })
     });
+    g.bench_function("meta_model_all_K3_into", |b| {
+        let mut i = 0;
+        let mut out = model.eval(1.0, 0.5, 1.0).gmm;
+        b.iter(|| {
+            let (d, a, r) = queries[i & 63];
+            i += 1;
+            black_box(model.eval_into(black_box(d), black_box(a), black_box(r), &mut out));
+            black_box(&out);
+        })
+    });
     g.bench_function("meta_file_last_K3", |b| {
         let mut i = 0;
         b.iter(|| {

@@ -119,6 +119,57 @@ impl AlbedoField for UniformAlbedo {
     }
 }
 
+/// What the boundary did in one step.
+enum Wall {
+    /// The flight ends inside the medium.
+    Missed,
+    /// Moved to the wall and reflected (Fresnel, TIR included).
+    Reflected,
+    /// Moved to the wall and left: through the surface at (x, y) or the
+    /// slab's bottom.
+    Left(Fate),
+}
+
+/// The boundary part of a step (protocol step 2): if the flight `s` reaches
+/// the surface (w_z > 0) or the slab's bottom (w_z < 0), move there and
+/// reflect with probability F(|w_z|) decided by `b`, or leave.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn wall(
+    x: &mut f64,
+    y: &mut f64,
+    z: &mut f64,
+    w: &mut Vec3,
+    s: f64,
+    bottom: Option<f64>,
+    b: u32,
+    inv_eta: f64,
+) -> Wall {
+    let to_wall = if w[2] > 0.0 {
+        -*z / w[2]
+    } else if let (Some(zb), true) = (bottom, w[2] < 0.0) {
+        (zb - *z) / w[2]
+    } else {
+        f64::INFINITY
+    };
+    if s < to_wall {
+        return Wall::Missed;
+    }
+    *x += w[0] * to_wall;
+    *y += w[1] * to_wall;
+    let at_top = w[2] > 0.0;
+    *z = if at_top { 0.0 } else { bottom.unwrap_or(0.0) };
+    if unit_f64(b) < fresnel_dielectric(w[2].abs(), inv_eta) {
+        w[2] = -w[2];
+        return Wall::Reflected;
+    }
+    Wall::Left(if at_top {
+        Fate::Exit { x: *x, y: *y }
+    } else {
+        Fate::Transmitted
+    })
+}
+
 /// Walks one launched path to its end; returns the fate and the number of
 /// scattering events.
 pub fn walk(medium: &Medium, max_events: u32, start: Launched, rng: &mut PathRng) -> (Fate, u32) {
@@ -152,30 +203,10 @@ pub fn walk_general<A: AlbedoField>(
         // ---- free flight ----------------------------------------------------
         let s = -unit_open0_f64(a).ln() / sigma_t;
         // ---- boundary: surface (w_z > 0) or slab bottom (w_z < 0) ------------
-        let to_wall = if w[2] > 0.0 {
-            -z / w[2]
-        } else if let (Some(zb), true) = (bottom, w[2] < 0.0) {
-            (zb - z) / w[2]
-        } else {
-            f64::INFINITY
-        };
-        if s >= to_wall {
-            x += w[0] * to_wall;
-            y += w[1] * to_wall;
-            let at_top = w[2] > 0.0;
-            z = if at_top { 0.0 } else { bottom.unwrap_or(0.0) };
-            if unit_f64(b) < fresnel_dielectric(w[2].abs(), inv_eta) {
-                w[2] = -w[2]; // internal reflection, TIR included
-                continue;
-            }
-            return (
-                if at_top {
-                    Fate::Exit { x, y }
-                } else {
-                    Fate::Transmitted
-                },
-                n,
-            );
+        match wall(&mut x, &mut y, &mut z, &mut w, s, bottom, b, inv_eta) {
+            Wall::Missed => {}
+            Wall::Reflected => continue,
+            Wall::Left(fate) => return (fate, n),
         }
         x += w[0] * s;
         y += w[1] * s;
@@ -241,30 +272,10 @@ pub fn walk_delta<A: AlbedoField, D: DensityField>(
         }
         let (a, b, c) = (rng.next_u32(), rng.next_u32(), rng.next_u32());
         let s = -unit_open0_f64(a).ln() / sigma_bar;
-        let to_wall = if w[2] > 0.0 {
-            -z / w[2]
-        } else if let (Some(zb), true) = (bottom, w[2] < 0.0) {
-            (zb - z) / w[2]
-        } else {
-            f64::INFINITY
-        };
-        if s >= to_wall {
-            x += w[0] * to_wall;
-            y += w[1] * to_wall;
-            let at_top = w[2] > 0.0;
-            z = if at_top { 0.0 } else { bottom.unwrap_or(0.0) };
-            if unit_f64(b) < fresnel_dielectric(w[2].abs(), inv_eta) {
-                w[2] = -w[2];
-                continue;
-            }
-            return (
-                if at_top {
-                    Fate::Exit { x, y }
-                } else {
-                    Fate::Transmitted
-                },
-                n,
-            );
+        match wall(&mut x, &mut y, &mut z, &mut w, s, bottom, b, inv_eta) {
+            Wall::Missed => {}
+            Wall::Reflected => continue,
+            Wall::Left(fate) => return (fate, n),
         }
         x += w[0] * s;
         y += w[1] * s;

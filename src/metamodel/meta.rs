@@ -224,13 +224,15 @@ impl MetaModel {
 
     /// The mixture from shape parameters θ at unit-density distance d.
     pub fn gmm_from_params(k: usize, theta: &[f64], d: f64) -> Gmm {
-        Self::gmm_scaled(k, theta, d, 1.0)
+        let mut g = Gmm { components: Vec::with_capacity(k) };
+        Self::gmm_scaled_into(k, theta, d, 1.0, &mut g);
+        g
     }
 
     /// [`Self::gmm_from_params`] with every length multiplied by `scale`
     /// (one allocation: the component list).
     #[inline]
-    fn gmm_scaled(k: usize, theta: &[f64], d: f64, scale: f64) -> Gmm {
+    fn gmm_scaled_into(k: usize, theta: &[f64], d: f64, scale: f64, out: &mut Gmm) {
         let lambda = 0.5 * d + 1.0;
         let logit = |i: usize| if i == 0 { 0.0 } else { theta[i - 1] };
         let m = (0..k).map(logit).fold(f64::NEG_INFINITY, f64::max);
@@ -250,16 +252,15 @@ impl MetaModel {
             o.copy_from_slice(&wide::f64x4::from([a[0], a[1], a[2], a[3]]).exp().to_array());
         }
         let inv_z = 1.0 / e[..k].iter().sum::<f64>();
-        let mut components = Vec::with_capacity(k);
+        out.components.clear();
         for i in 0..k {
-            components.push(Component {
+            out.components.push(Component {
                 weight: e[i] * inv_z,
                 t: scale * (0.5 * d + lambda * theta[k - 1 + i]),
                 s: 0.0,
                 sigma: scale * lambda * e[k + i],
             });
         }
-        Gmm { components }
     }
 
     /// The kernel at (d, α, ρ): evaluated at the optical distance ρd and
@@ -267,13 +268,23 @@ impl MetaModel {
     /// [`scale_for_density`], applied while building the mixture).
     #[inline]
     pub fn eval(&self, d: f64, alpha: f64, rho: f64) -> KernelQuery {
+        let mut gmm = Gmm {
+            components: Vec::with_capacity(self.k),
+        };
+        let clamped = self.eval_into(d, alpha, rho, &mut gmm);
+        KernelQuery { gmm, clamped }
+    }
+
+    /// [`Self::eval`] into an existing mixture (its allocation is reused: no
+    /// allocation per query, as in a renderer's inner loop); returns
+    /// `clamped`.
+    #[inline]
+    pub fn eval_into(&self, d: f64, alpha: f64, rho: f64, out: &mut Gmm) -> bool {
         let d1 = optical_distance(d, rho);
         let (xy, clamped) = self.coordinates(d1, alpha);
         let theta = self.params_at(xy);
-        KernelQuery {
-            gmm: Self::gmm_scaled(self.k, &theta, d1.max(0.0), 1.0 / rho),
-            clamped,
-        }
+        Self::gmm_scaled_into(self.k, &theta, d1.max(0.0), 1.0 / rho, out);
+        clamped
     }
 
     fn check(&self, path: &Path, class: &str) -> Result<()> {
