@@ -40,6 +40,7 @@ pub mod metamodel;
 pub mod oracles;
 pub mod plot;
 pub mod provenance;
+pub mod render;
 pub mod testing;
 
 pub use error::{Error, Result};

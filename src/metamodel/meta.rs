@@ -224,7 +224,9 @@ impl MetaModel {
 
     /// The mixture from shape parameters θ at unit-density distance d.
     pub fn gmm_from_params(k: usize, theta: &[f64], d: f64) -> Gmm {
-        let mut g = Gmm { components: Vec::with_capacity(k) };
+        let mut g = Gmm {
+            components: Vec::with_capacity(k),
+        };
         Self::gmm_scaled_into(k, theta, d, 1.0, &mut g);
         g
     }

@@ -1,0 +1,727 @@
+//! Scenes: TOML files that name the medium, the material maps, the light, the
+//! image and the methods to render (issue 6 §1, design §5).
+//!
+//! # Schema
+//!
+//! | key | type | default | units | meaning |
+//! |---|---|---|---|---|
+//! | `name` | string | file stem | — | scene name |
+//! | `medium.eta` | float | 1.5 | 1 | n_inside/n_outside, in [1, 3] |
+//! | `medium.g` | float | 0.3 | 1 | Henyey–Greenstein g, in (−1, 1) |
+//! | `texel` | float | 0.1 | MFP | texel size τ of every map |
+//! | `albedo` | map | — | 1 | single-scattering albedo, values in [0, 1] |
+//! | `density` | map | constant 1 | 1 | density ρ (σ_t = ρ), values > 0 |
+//! | `light.kind` | `"collimated"` \| `"diffuse"` | `"collimated"` | — | disk light at the origin |
+//! | `light.radius` | float | 1 | MFP | disk radius R |
+//! | `light.irradiance` | float | 1 | 1 | irradiance before the boundary |
+//! | `image.resolution` | int | 64 | pixels | N (N × N image) |
+//! | `image.half_width` | float | 4 | MFP | W: the image covers [−W, W]² |
+//! | `observable` | `"exitance"` \| `"radiance"` | `"exitance"` | — | M(x, y), or radiance along the normal |
+//! | `methods` | list of strings | all | — | among point, factorized, line, ellipse, manual, learned |
+//! | `samples` | int | 64 | — | light samples per pixel for the model methods |
+//! | `reference_paths` | int | 1e6 | — | paths of the brute-force reference |
+//! | `density_sweep` | list of floats | none | 1 | render once per constant density (instead of `density`) |
+//!
+//! A **map** is one of (a TOML table):
+//! * `{ constant = 0.8 }`, or `{ rgb = [0.8, 0.5, 0.3] }`;
+//! * `{ pattern = "stripes", values = [a, b], width = w, angle = deg }`
+//!   (stripes of width w MFP across the direction `angle` (degrees from +x):
+//!   stripe k = ⌊u/w⌋ with u = x cos θ + y sin θ holds a for even k, b for odd),
+//!   `{ pattern = "checker", values = [a, b], cell = c }`,
+//!   `{ pattern = "ramp", values = [a, b], length = L }` (linear in x from a at
+//!   x = −L/2 to b at +L/2, clamped), `{ pattern = "dots", values = [bg, dot],
+//!   spacing = s, radius = r }`, `{ pattern = "complex", values = [a, b],
+//!   seed = n }` (thin lines and dots at three scales); for RGB, `values` is a
+//!   list of three-element lists (one per value);
+//! * `{ channels = [map, map, map] }` — R, G, B from three grey maps;
+//! * `{ file = "path.npy" }` — an `(ny, nx)` or `(ny, nx, 3)` float64 array
+//!   (row 0 is +y, column 0 is −x), relative to the scene file.
+//!
+//! Every map is sampled on a texel grid of `size` = `[nx, ny]` texels
+//! (`size` key of the map table; default: enough texels of size τ to cover the
+//! image plus 4 MFP on every side) with the texel conventions of
+//! [`crate::forward::maps`]: centred on the origin, nearest-neighbour, edge
+//! texel extends outside.
+//!
+//! Errors name the file, the key and, where the parser knows it, the line;
+//! nothing is rendered from a malformed scene.
+
+use crate::error::{Error, Result};
+use crate::forward::maps::TexelMap;
+use crate::forward::rng::PathRng;
+use serde::Deserialize;
+use std::path::{Path, PathBuf};
+
+/// The methods a scene can ask for (design §4's table).
+pub const METHODS: [&str; 6] = [
+    "point",
+    "factorized",
+    "line",
+    "ellipse",
+    "manual",
+    "learned",
+];
+
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawScene {
+    name: Option<String>,
+    #[serde(default)]
+    medium: RawMedium,
+    #[serde(default = "default_texel")]
+    texel: f64,
+    albedo: RawMap,
+    density: Option<RawMap>,
+    #[serde(default)]
+    light: RawLight,
+    #[serde(default)]
+    image: RawImage,
+    #[serde(default = "default_observable")]
+    observable: String,
+    methods: Option<Vec<String>>,
+    #[serde(default = "default_samples")]
+    samples: u32,
+    #[serde(default = "default_reference_paths")]
+    reference_paths: f64,
+    density_sweep: Option<Vec<f64>>,
+}
+
+fn default_texel() -> f64 {
+    0.1
+}
+fn default_observable() -> String {
+    "exitance".into()
+}
+fn default_samples() -> u32 {
+    64
+}
+fn default_reference_paths() -> f64 {
+    1e6
+}
+
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawMedium {
+    #[serde(default = "default_eta")]
+    eta: f64,
+    #[serde(default = "default_g")]
+    g: f64,
+}
+
+fn default_eta() -> f64 {
+    1.5
+}
+fn default_g() -> f64 {
+    0.3
+}
+
+impl Default for RawMedium {
+    fn default() -> Self {
+        RawMedium { eta: 1.5, g: 0.3 }
+    }
+}
+
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawLight {
+    #[serde(default = "default_kind")]
+    kind: String,
+    #[serde(default = "one")]
+    radius: f64,
+    #[serde(default = "one")]
+    irradiance: f64,
+}
+
+fn default_kind() -> String {
+    "collimated".into()
+}
+fn one() -> f64 {
+    1.0
+}
+
+impl Default for RawLight {
+    fn default() -> Self {
+        RawLight {
+            kind: default_kind(),
+            radius: 1.0,
+            irradiance: 1.0,
+        }
+    }
+}
+
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawImage {
+    #[serde(default = "default_resolution")]
+    resolution: usize,
+    #[serde(default = "default_half_width")]
+    half_width: f64,
+}
+
+fn default_resolution() -> usize {
+    64
+}
+fn default_half_width() -> f64 {
+    4.0
+}
+
+impl Default for RawImage {
+    fn default() -> Self {
+        RawImage {
+            resolution: 64,
+            half_width: 4.0,
+        }
+    }
+}
+
+/// A map as written in the scene (see the module docs).
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawMap {
+    constant: Option<f64>,
+    rgb: Option<[f64; 3]>,
+    pattern: Option<String>,
+    values: Option<toml::Value>,
+    width: Option<f64>,
+    angle: Option<f64>,
+    cell: Option<f64>,
+    length: Option<f64>,
+    spacing: Option<f64>,
+    radius: Option<f64>,
+    seed: Option<u64>,
+    file: Option<PathBuf>,
+    channels: Option<Vec<RawMap>>,
+    size: Option<[usize; 2]>,
+}
+
+/// The light of a scene.
+#[derive(Clone, Debug, PartialEq)]
+pub enum LightKind {
+    Collimated,
+    Diffuse,
+}
+
+/// What the image holds.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Observable {
+    /// Radiant exitance M(x, y) per unit incident irradiance.
+    Exitance,
+    /// Radiance leaving along the normal.
+    Radiance,
+}
+
+/// A loaded, validated scene.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    pub name: String,
+    pub path: PathBuf,
+    pub eta: f64,
+    pub g: f64,
+    pub texel: f64,
+    /// One map per channel: 1 (grey) or 3 (RGB).
+    pub albedo: Vec<TexelMap>,
+    /// Density map (one channel); `None` = constant 1.
+    pub density: Option<TexelMap>,
+    pub light: LightKind,
+    pub light_radius: f64,
+    pub irradiance: f64,
+    pub resolution: usize,
+    pub half_width: f64,
+    pub observable: Observable,
+    pub methods: Vec<String>,
+    pub samples: u32,
+    pub reference_paths: u64,
+    /// Render the scene once per constant density in this list (the
+    /// `features` scene); empty: once, with `density`.
+    pub density_sweep: Vec<f64>,
+}
+
+impl Scene {
+    /// Loads and validates a scene file.
+    pub fn load(path: &Path) -> Result<Scene> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let raw: RawScene = toml::from_str(&text).map_err(|e| {
+            let line = e
+                .span()
+                .map(|s| format!("line {}", text[..s.start].matches('\n').count() + 1))
+                .unwrap_or_else(|| "(unknown line)".into());
+            Error::format(path, line, e.message().to_string())
+        })?;
+        let bad = |key: &str, msg: String| Error::format(path, key.to_string(), msg);
+        let in_range = |key: &str, v: f64, ok: bool, allowed: &str| {
+            if ok && v.is_finite() {
+                Ok(())
+            } else {
+                Err(bad(key, format!("{v} must be {allowed}")))
+            }
+        };
+        let m = &raw.medium;
+        in_range(
+            "medium.eta",
+            m.eta,
+            (1.0..=3.0).contains(&m.eta),
+            "in [1, 3]",
+        )?;
+        in_range("medium.g", m.g, m.g.abs() < 1.0, "in (-1, 1)")?;
+        in_range("texel", raw.texel, raw.texel > 0.0, "> 0")?;
+        in_range(
+            "light.radius",
+            raw.light.radius,
+            raw.light.radius > 0.0,
+            "> 0",
+        )?;
+        in_range(
+            "light.irradiance",
+            raw.light.irradiance,
+            raw.light.irradiance > 0.0,
+            "> 0",
+        )?;
+        in_range(
+            "image.half_width",
+            raw.image.half_width,
+            raw.image.half_width > 0.0,
+            "> 0",
+        )?;
+        if !(1..=4096).contains(&raw.image.resolution) {
+            return Err(bad(
+                "image.resolution",
+                format!("{} must be in 1..=4096", raw.image.resolution),
+            ));
+        }
+        let light = match raw.light.kind.as_str() {
+            "collimated" => LightKind::Collimated,
+            "diffuse" => LightKind::Diffuse,
+            k => {
+                return Err(bad(
+                    "light.kind",
+                    format!("'{k}' must be collimated or diffuse"),
+                ));
+            }
+        };
+        let observable = match raw.observable.as_str() {
+            "exitance" => Observable::Exitance,
+            "radiance" => Observable::Radiance,
+            o => {
+                return Err(bad(
+                    "observable",
+                    format!("'{o}' must be exitance or radiance"),
+                ));
+            }
+        };
+        let methods = raw
+            .methods
+            .clone()
+            .unwrap_or_else(|| METHODS.iter().map(|s| s.to_string()).collect());
+        if let Some(m) = methods.iter().find(|m| !METHODS.contains(&m.as_str())) {
+            return Err(bad(
+                "methods",
+                format!("unknown method '{m}' (known: {METHODS:?})"),
+            ));
+        }
+        if raw.samples == 0 {
+            return Err(bad("samples", "must be >= 1".into()));
+        }
+        let rp = raw.reference_paths;
+        if !((1.0..=1e15).contains(&rp) && rp.fract() == 0.0) {
+            return Err(bad(
+                "reference_paths",
+                format!("{rp} must be an integer in [1, 1e15]"),
+            ));
+        }
+        // Default map size: the image plus 4 MFP on every side.
+        let extent = 2.0 * (raw.image.half_width + 4.0);
+        let default_size = ((extent / raw.texel).ceil() as usize).max(1);
+        let dir = path.parent().unwrap_or(Path::new("."));
+        let albedo = build_map(&raw.albedo, "albedo", raw.texel, default_size, dir, path)?;
+        for (c, m) in albedo.iter().enumerate() {
+            if let Some(v) = m.values.iter().find(|v| !(0.0..=1.0).contains(*v)) {
+                return Err(bad(
+                    "albedo",
+                    format!("value {v} (channel {c}) must be in [0, 1]"),
+                ));
+            }
+        }
+        let density = match &raw.density {
+            None => None,
+            Some(d) => {
+                let mut maps = build_map(d, "density", raw.texel, default_size, dir, path)?;
+                if maps.len() != 1 {
+                    return Err(bad("density", "must have one channel".into()));
+                }
+                let m = maps.remove(0);
+                if let Some(v) = m.values.iter().find(|v| !(v.is_finite() && **v > 0.0)) {
+                    return Err(bad("density", format!("value {v} must be finite and > 0")));
+                }
+                Some(m)
+            }
+        };
+        let density_sweep = raw.density_sweep.clone().unwrap_or_default();
+        if let Some(r) = density_sweep.iter().find(|r| !(r.is_finite() && **r > 0.0)) {
+            return Err(bad("density_sweep", format!("{r} must be finite and > 0")));
+        }
+        if !density_sweep.is_empty() && density.is_some() {
+            return Err(bad(
+                "density_sweep",
+                "give either density or density_sweep".into(),
+            ));
+        }
+        Ok(Scene {
+            density_sweep,
+            name: raw.name.clone().unwrap_or_else(|| {
+                path.file_stem()
+                    .map_or("scene".into(), |s| s.to_string_lossy().into_owned())
+            }),
+            path: path.to_path_buf(),
+            eta: m.eta,
+            g: m.g,
+            texel: raw.texel,
+            albedo,
+            density,
+            light,
+            light_radius: raw.light.radius,
+            irradiance: raw.light.irradiance,
+            resolution: raw.image.resolution,
+            half_width: raw.image.half_width,
+            observable,
+            methods,
+            samples: raw.samples,
+            reference_paths: rp as u64,
+        })
+    }
+
+    /// True if every albedo channel is one constant (no aggregation needed).
+    pub fn albedo_is_constant(&self) -> bool {
+        self.albedo
+            .iter()
+            .all(|m| m.values.iter().all(|v| *v == m.values[0]))
+    }
+
+    /// True if the RGB channels are identical (render one channel).
+    pub fn is_grey(&self) -> bool {
+        self.albedo.len() == 1
+            || self
+                .albedo
+                .iter()
+                .all(|m| m.values == self.albedo[0].values)
+    }
+}
+
+/// The values of a map: one per channel.
+fn values_of(raw: &RawMap, key: &str, path: &Path) -> Result<Vec<Vec<f64>>> {
+    let bad = |msg: String| Error::format(path, format!("{key}.values"), msg);
+    let v = raw
+        .values
+        .as_ref()
+        .ok_or_else(|| bad("a pattern needs `values = [a, b]`".into()))?;
+    let arr = v.as_array().ok_or_else(|| bad("must be a list".into()))?;
+    if arr.len() != 2 {
+        return Err(bad(format!(
+            "needs exactly two values, found {}",
+            arr.len()
+        )));
+    }
+    let num = |x: &toml::Value| x.as_float().or_else(|| x.as_integer().map(|i| i as f64));
+    // Grey: [a, b]; RGB: [[r, g, b], [r, g, b]].
+    if arr.iter().all(|x| num(x).is_some()) {
+        return Ok(vec![arr.iter().map(|x| num(x).unwrap_or(0.0)).collect()]);
+    }
+    let rgb: Option<Vec<Vec<f64>>> = arr
+        .iter()
+        .map(|x| {
+            let a = x.as_array()?;
+            (a.len() == 3).then(|| a.iter().map(num).collect::<Option<Vec<f64>>>())?
+        })
+        .collect();
+    let rgb = rgb.ok_or_else(|| bad("must be two numbers or two [r, g, b] lists".into()))?;
+    Ok((0..3).map(|c| vec![rgb[0][c], rgb[1][c]]).collect())
+}
+
+/// Builds a map's channels on its texel grid.
+fn build_map(
+    raw: &RawMap,
+    key: &str,
+    texel: f64,
+    default_size: usize,
+    dir: &Path,
+    path: &Path,
+) -> Result<Vec<TexelMap>> {
+    let bad = |sub: &str, msg: String| Error::format(path, format!("{key}{sub}"), msg);
+    let kinds = [
+        raw.constant.is_some(),
+        raw.rgb.is_some(),
+        raw.pattern.is_some(),
+        raw.file.is_some(),
+        raw.channels.is_some(),
+    ];
+    if kinds.iter().filter(|k| **k).count() != 1 {
+        return Err(bad(
+            "",
+            "give exactly one of constant, rgb, pattern, file, channels".into(),
+        ));
+    }
+    if let Some(ch) = &raw.channels {
+        if ch.len() != 3 {
+            return Err(bad(
+                ".channels",
+                format!("needs three maps (R, G, B), found {}", ch.len()),
+            ));
+        }
+        let mut out = Vec::new();
+        for (c, m) in ch.iter().enumerate() {
+            let mut v = build_map(
+                m,
+                &format!("{key}.channels[{c}]"),
+                texel,
+                default_size,
+                dir,
+                path,
+            )?;
+            if v.len() != 1 {
+                return Err(bad(
+                    &format!(".channels[{c}]"),
+                    "each channel must be a grey map".into(),
+                ));
+            }
+            out.push(v.remove(0));
+        }
+        return Ok(out);
+    }
+    if let Some(c) = raw.constant {
+        return Ok(vec![TexelMap::new(1, 1, texel, vec![c])?]);
+    }
+    if let Some(rgb) = raw.rgb {
+        return rgb
+            .iter()
+            .map(|c| TexelMap::new(1, 1, texel, vec![*c]))
+            .collect();
+    }
+    if let Some(file) = &raw.file {
+        return load_npy(&dir.join(file), texel).map_err(|e| match e {
+            Error::Format { .. } | Error::Io { .. } => e,
+            other => bad(".file", other.to_string()),
+        });
+    }
+    let pattern = raw.pattern.as_deref().unwrap_or_default();
+    let [nx, ny] = raw.size.unwrap_or([default_size, default_size]);
+    if nx == 0 || ny == 0 || nx * ny > 1 << 26 {
+        return Err(bad(
+            ".size",
+            format!("[{nx}, {ny}] must be positive and at most 2^26 texels"),
+        ));
+    }
+    let channels = values_of(raw, key, path)?;
+    let positive = |name: &str, v: Option<f64>, default: f64| -> Result<f64> {
+        let v = v.unwrap_or(default);
+        if v > 0.0 && v.is_finite() {
+            Ok(v)
+        } else {
+            Err(bad(
+                &format!(".{name}"),
+                format!("{v} must be finite and > 0"),
+            ))
+        }
+    };
+    // Selector in [0, 1] per texel centre (x, y): 0 → values[0], 1 → values[1].
+    let select: Box<dyn Fn(f64, f64) -> f64> = match pattern {
+        "stripes" => {
+            let w = positive("width", raw.width, 0.5)?;
+            let a = raw.angle.unwrap_or(0.0).to_radians();
+            Box::new(move |x, y| {
+                let u = x * a.cos() + y * a.sin();
+                ((u / w).floor().rem_euclid(2.0) != 0.0) as u8 as f64
+            })
+        }
+        "checker" => {
+            let c = positive("cell", raw.cell, 0.5)?;
+            Box::new(move |x, y| {
+                (((x / c).floor() + (y / c).floor()).rem_euclid(2.0) != 0.0) as u8 as f64
+            })
+        }
+        "ramp" => {
+            let l = positive("length", raw.length, 8.0)?;
+            Box::new(move |x, _| (x / l + 0.5).clamp(0.0, 1.0))
+        }
+        "dots" => {
+            let s = positive("spacing", raw.spacing, 1.0)?;
+            let r = positive("radius", raw.radius, 0.2)?;
+            Box::new(move |x, y| {
+                let (dx, dy) = (x - s * (x / s).round(), y - s * (y / s).round());
+                (dx.hypot(dy) < r) as u8 as f64
+            })
+        }
+        "complex" => {
+            let seed = raw.seed.unwrap_or(1);
+            Box::new(move |x, y| complex_pattern(seed, x, y))
+        }
+        p => {
+            return Err(bad(
+                ".pattern",
+                format!("unknown pattern '{p}' (stripes, checker, ramp, dots, complex)"),
+            ));
+        }
+    };
+    let centre = |i: usize, j: usize| {
+        (
+            -0.5 * nx as f64 * texel + (j as f64 + 0.5) * texel,
+            0.5 * ny as f64 * texel - (i as f64 + 0.5) * texel,
+        )
+    };
+    channels
+        .iter()
+        .map(|vals| {
+            let mut v = Vec::with_capacity(nx * ny);
+            for i in 0..ny {
+                for j in 0..nx {
+                    let (x, y) = centre(i, j);
+                    let s = select(x, y);
+                    v.push(vals[0] + s * (vals[1] - vals[0]));
+                }
+            }
+            TexelMap::new(nx, ny, texel, v)
+        })
+        .collect()
+}
+
+/// Thin lines and dots at three scales (seeded): 1 on a feature, 0 off.
+fn complex_pattern(seed: u64, x: f64, y: f64) -> f64 {
+    let mut rng = PathRng::new(seed, 0);
+    let mut on = false;
+    for scale in [0.4, 1.0, 2.5] {
+        let (ox, oy, a) = (
+            rng.uniform() * scale,
+            rng.uniform() * scale,
+            rng.uniform() * 3.0,
+        );
+        // Thin lines (width scale/8) at angle a, period 2·scale.
+        let u = (x - ox) * a.cos() + (y - oy) * a.sin();
+        on |= (u / (2.0 * scale)).rem_euclid(1.0) < 1.0 / 16.0;
+        // Dots of radius scale/6 on a lattice of period 1.5·scale.
+        let p = 1.5 * scale;
+        let (dx, dy) = (
+            x - ox - p * ((x - ox) / p).round(),
+            y - oy - p * ((y - oy) / p).round(),
+        );
+        on |= dx.hypot(dy) < scale / 6.0;
+    }
+    on as u8 as f64
+}
+
+/// Loads an `(ny, nx)` or `(ny, nx, 3)` float64 `.npy` as 1 or 3 channels.
+fn load_npy(file: &Path, texel: f64) -> Result<Vec<TexelMap>> {
+    use ndarray::ArrayD;
+    use ndarray_npy::ReadNpyExt;
+    let f = std::fs::File::open(file).map_err(|e| Error::io(file, e))?;
+    let a = ArrayD::<f64>::read_npy(f).map_err(|e| Error::format(file, "(npy)", e))?;
+    let shape = a.shape().to_vec();
+    let (ny, nx, nc) = match shape[..] {
+        [ny, nx] => (ny, nx, 1),
+        [ny, nx, 3] => (ny, nx, 3),
+        _ => {
+            return Err(Error::format(
+                file,
+                "(shape)",
+                format!("{shape:?}: expected (ny, nx) or (ny, nx, 3)"),
+            ));
+        }
+    };
+    let flat: Vec<f64> = a.iter().copied().collect();
+    (0..nc)
+        .map(|c| {
+            let v = (0..ny * nx).map(|k| flat[k * nc + c]).collect();
+            TexelMap::new(nx, ny, texel, v)
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn write(name: &str, text: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("svk-scene-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join(name);
+        std::fs::write(&p, text).unwrap();
+        p
+    }
+
+    #[test]
+    fn patterns_follow_the_texel_conventions() {
+        let p = write(
+            "stripes.toml",
+            "texel = 0.25\nalbedo = { pattern = \"stripes\", values = [0.3, 0.95], width = 0.5, size = [8, 2] }\n",
+        );
+        let s = Scene::load(&p).unwrap();
+        let m = &s.albedo[0];
+        assert_eq!((m.nx, m.ny), (8, 2));
+        // x ∈ [−1, 1): stripe k = ⌊x/w⌋, even k → values[0]: [−1, −0.5)
+        // is k = −2 → 0.3, [−0.5, 0) is k = −1 → 0.95, [0, 0.5) → 0.3.
+        assert_eq!(m.at(-0.9, 0.0), 0.3);
+        assert_eq!(m.at(-0.3, 0.0), 0.95);
+        assert_eq!(m.at(0.2, 0.0), 0.3);
+        assert!(!s.albedo_is_constant() && s.is_grey());
+        assert_eq!(s.methods.len(), METHODS.len());
+    }
+
+    #[test]
+    fn errors_name_the_file_key_and_line() {
+        for (text, want) in [
+            ("albedo = { constant = 1.5 }\n", "albedo"),
+            (
+                "albedo = { constant = 0.5 }\n[medium]\neta = 0.5\n",
+                "medium.eta",
+            ),
+            (
+                "albedo = { constant = 0.5 }\n[light]\nkind = \"laser\"\n",
+                "light.kind",
+            ),
+            (
+                "albedo = { constant = 0.5 }\nmethods = [\"magic\"]\n",
+                "methods",
+            ),
+            (
+                "albedo = { pattern = \"zebra\", values = [0.1, 0.2] }\n",
+                "albedo.pattern",
+            ),
+            ("albedo = { constant = 0.5 }\ncolour = 3\n", "line 2"),
+            (
+                "albedo = { constant = 0.5 }\n[image]\nresolution = \"big\"\n",
+                "line 3",
+            ),
+            (
+                "albedo = { constant = 0.5, rgb = [0.1, 0.2, 0.3] }\n",
+                "exactly one",
+            ),
+            (
+                "albedo = { constant = 0.5 }\ndensity = { constant = 0 }\n",
+                "density",
+            ),
+        ] {
+            let p = write("bad.toml", text);
+            let e = Scene::load(&p).unwrap_err().to_string();
+            assert!(e.contains("bad.toml") && e.contains(want), "{text:?}: {e}");
+        }
+    }
+
+    #[test]
+    fn rgb_and_npy_maps() {
+        let p = write(
+            "rgb.toml",
+            "albedo = { pattern = \"checker\", values = [[0.2, 0.3, 0.4], [0.9, 0.8, 0.7]], cell = 0.5, size = [4, 4] }\n",
+        );
+        let s = Scene::load(&p).unwrap();
+        assert_eq!(s.albedo.len(), 3);
+        assert!(!s.is_grey());
+        let dir = p.parent().unwrap();
+        let arr = ndarray::Array3::from_shape_fn((2, 3, 3), |(i, j, c)| {
+            0.1 * (i * 3 + j) as f64 + 0.01 * c as f64
+        });
+        ndarray_npy::write_npy(dir.join("m.npy"), &arr).unwrap();
+        let p = write("npy.toml", "texel = 1.0\nalbedo = { file = \"m.npy\" }\n");
+        let s = Scene::load(&p).unwrap();
+        assert_eq!((s.albedo[0].nx, s.albedo[0].ny), (3, 2));
+        // Row 0 is +y, column 0 is −x; channel 2 offset 0.02.
+        assert!((s.albedo[2].at(-1.4, 0.9) - 0.02).abs() < 1e-12);
+        assert!((s.albedo[0].at(1.4, -0.9) - 0.5).abs() < 1e-12);
+    }
+}

@@ -1,0 +1,48 @@
+//! Every shipped scene loads and is what design §5 says it is.
+
+use std::path::Path;
+use svkernel::render::scene::{LightKind, Scene};
+
+#[test]
+fn every_shipped_scene_loads() {
+    let mut names = Vec::new();
+    for entry in std::fs::read_dir("scenes").unwrap() {
+        let p = entry.unwrap().path();
+        if p.extension().is_some_and(|e| e == "toml") {
+            let s = Scene::load(&p).unwrap_or_else(|e| panic!("{e}"));
+            assert!(
+                s.albedo
+                    .iter()
+                    .all(|m| m.values.iter().all(|v| (0.0..=1.0).contains(v)))
+            );
+            assert_eq!(s.light, LightKind::Collimated);
+            names.push(s.name);
+        }
+    }
+    names.sort();
+    assert_eq!(
+        names,
+        [
+            "checker", "color", "complex", "density", "features", "stripes"
+        ]
+    );
+}
+
+#[test]
+fn canonical_scenes_have_their_structure() {
+    let s = Scene::load(Path::new("scenes/stripes.toml")).unwrap();
+    let vals: std::collections::BTreeSet<u64> =
+        s.albedo[0].values.iter().map(|v| v.to_bits()).collect();
+    assert_eq!(vals.len(), 2);
+    assert!(s.is_grey() && !s.albedo_is_constant() && s.density.is_none());
+    let c = Scene::load(Path::new("scenes/color.toml")).unwrap();
+    assert_eq!(c.albedo.len(), 3);
+    assert!(!c.is_grey());
+    let f = Scene::load(Path::new("scenes/features.toml")).unwrap();
+    assert_eq!(f.density_sweep, vec![0.5, 1.0, 2.0, 4.0]);
+    assert_eq!(f.light_radius, 4.0);
+    let d = Scene::load(Path::new("scenes/density.toml")).unwrap();
+    let rho = d.density.as_ref().unwrap();
+    assert!((rho.at(-10.0, 0.0) - 0.5).abs() < 1e-12 && (rho.at(10.0, 0.0) - 4.0).abs() < 1e-12);
+    assert!((rho.at(0.0, 0.0) - 2.25).abs() < 0.05);
+}
