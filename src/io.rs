@@ -69,6 +69,30 @@ pub fn write_json_compact_atomic<T: Serialize>(path: &Path, value: &T) -> Result
     write_atomic(path, &bytes)
 }
 
+/// Checks a versioned document's header: the `format` tag and the
+/// `version` must be the expected ones (errors name the file and the key).
+pub fn check_header(
+    path: &Path,
+    (format, version): (&str, u32),
+    (want_format, want_version): (&str, u32),
+) -> Result<()> {
+    if format != want_format {
+        return Err(Error::format(
+            path,
+            "format",
+            format!("expected {want_format}, found {format}"),
+        ));
+    }
+    if version != want_version {
+        return Err(Error::format(
+            path,
+            "version",
+            format!("expected {want_version}, found {version} (unsupported)"),
+        ));
+    }
+    Ok(())
+}
+
 /// Reads JSON from `path`; a parse error names the file, the failing key
 /// path where serde reports it, and the line.
 pub fn read_json<T: DeserializeOwned>(path: &Path) -> Result<T> {

@@ -610,20 +610,11 @@ impl KernelDoc {
     /// Loads and checks a kernel document (format, version, tally shape).
     pub fn load(path: &Path) -> Result<Self> {
         let doc: KernelDoc = crate::io::read_json(path)?;
-        if doc.format != KERNEL_FORMAT {
-            return Err(Error::format(
-                path,
-                "format",
-                format!("expected {KERNEL_FORMAT}, found {}", doc.format),
-            ));
-        }
-        if doc.version != KERNEL_VERSION {
-            return Err(Error::format(
-                path,
-                "version",
-                format!("expected {KERNEL_VERSION}, found {}", doc.version),
-            ));
-        }
+        crate::io::check_header(
+            path,
+            (&doc.format, doc.version),
+            (KERNEL_FORMAT, KERNEL_VERSION),
+        )?;
         let c = &doc.config;
         let bins = c.grid.bins() + 1;
         let shape_ok = doc.tally.cells.len() == c.albedos.len()

@@ -230,20 +230,11 @@ impl ProfileDoc {
     /// Loads and checks a profile document.
     pub fn load(path: &Path) -> Result<Self> {
         let doc: ProfileDoc = crate::io::read_json(path)?;
-        if doc.format != PROFILE_FORMAT {
-            return Err(Error::format(
-                path,
-                "format",
-                format!("expected {PROFILE_FORMAT}, found {}", doc.format),
-            ));
-        }
-        if doc.version != PROFILE_VERSION {
-            return Err(Error::format(
-                path,
-                "version",
-                format!("unsupported version {}", doc.version),
-            ));
-        }
+        crate::io::check_header(
+            path,
+            (&doc.format, doc.version),
+            (PROFILE_FORMAT, PROFILE_VERSION),
+        )?;
         let n = doc.config.bins.len();
         if doc.tally.exit_single.len() != n || doc.tally.exit_multi.len() != n {
             return Err(Error::format(

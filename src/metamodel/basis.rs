@@ -311,20 +311,7 @@ impl BasisModel {
     pub fn load(path: &std::path::Path) -> crate::Result<Self> {
         use crate::Error;
         let m: BasisModel = crate::io::read_json(path)?;
-        if m.format != BASIS_FORMAT {
-            return Err(Error::format(
-                path,
-                "format",
-                format!("expected {BASIS_FORMAT}, found {}", m.format),
-            ));
-        }
-        if m.version != BASIS_VERSION {
-            return Err(Error::format(
-                path,
-                "version",
-                format!("unsupported version {}", m.version),
-            ));
-        }
+        crate::io::check_header(path, (&m.format, m.version), (BASIS_FORMAT, BASIS_VERSION))?;
         let rows_ok = |rows: &Vec<Vec<f64>>| {
             rows.iter()
                 .all(|r| r.len() == m.degree + 1 && r.iter().all(|v| v.is_finite()))

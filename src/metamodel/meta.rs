@@ -370,20 +370,7 @@ impl MetaModelFile {
     /// Loads and validates a meta-model file.
     pub fn load(path: &Path) -> Result<Self> {
         let f: MetaModelFile = crate::io::read_json(path)?;
-        if f.format != META_FORMAT {
-            return Err(Error::format(
-                path,
-                "format",
-                format!("expected {META_FORMAT}, found {}", f.format),
-            ));
-        }
-        if f.version != META_VERSION {
-            return Err(Error::format(
-                path,
-                "version",
-                format!("expected {META_VERSION}, found {}", f.version),
-            ));
-        }
+        crate::io::check_header(path, (&f.format, f.version), (META_FORMAT, META_VERSION))?;
         f.all.check(path, "all")?;
         if let Some(m) = &f.first {
             m.check(path, "first")?;
