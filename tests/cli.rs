@@ -194,3 +194,58 @@ fn resume_after_kill_is_bitwise_identical() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("run.json.ckpt"));
 }
+
+#[test]
+fn kernel_shards_merge_to_the_unsharded_result() {
+    let d = tmpdir("kshards");
+    let run = |extra: &[&str], out: &Path| {
+        let o = bin()
+            .args([
+                "simulate",
+                "kernels",
+                "--albedos",
+                "0.8,0.95",
+                "--distances",
+                "0.5,2",
+            ])
+            .args(["--paths", "6e4", "--seed", "5"])
+            .args(extra)
+            .arg("--out")
+            .arg(out)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    };
+    let full = d.join("full.json");
+    run(&[], &full);
+    let parts: Vec<PathBuf> = (0..2)
+        .map(|k| {
+            let p = d.join(format!("k{k}.json"));
+            run(&["--shard", &format!("{k}/2")], &p);
+            p
+        })
+        .collect();
+    let merged = d.join("merged.json");
+    let o = bin()
+        .arg("merge")
+        .args(&parts)
+        .arg("--out")
+        .arg(&merged)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (a, b) = (json(&full), json(&merged));
+    assert_eq!(a["tally"], b["tally"]);
+    assert_eq!(a["summary"], b["summary"]);
+    assert_eq!(b["shard"], serde_json::Value::Null);
+    // Overlapping distance bins are refused, naming the flag, with no output.
+    let bad = d.join("bad.json");
+    let o = bin()
+        .args(["simulate", "kernels", "--distances", "1,1.1", "--out"])
+        .arg(&bad)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("--distances"), "{err}");
+    assert!(!bad.exists());
+}
