@@ -6,11 +6,11 @@
 //! For cell (α, d) and a random albedo texture A (texel size τ, values
 //! uniform in [0, 1], random offset and orientation relative to the pair
 //! frame; seeded), the aggregated albedo under a kernel K is
-//! α_t[K] = Σ_b m_b[K]·Ā_b / Σ_b m_b[K] over the histogram's grid, with m_b
+//! α_t(K) = Σ_b m_b(K)·Ā_b / Σ_b m_b(K) over the histogram's grid, with m_b
 //! the kernel's mass in bin b and Ā_b the texture averaged over bin b and
 //! its mirror image in s (the histogram is folded in |s|), by 4 × 4
 //! sub-samples per bin. The reference is the measured histogram; the error
-//! of a kernel is the RMS over textures of α_t[K] − α_t[histogram]. Off-grid
+//! of a kernel is the RMS over textures of α_t(K) − α_t(histogram). Off-grid
 //! mass is left out of every method alike.
 
 use super::gmm::{KernelHistogram, histogram_of};
@@ -109,7 +109,7 @@ pub struct AggregationRow {
     pub alpha: f64,
     pub d: f64,
     pub paths: u64,
-    /// RMS over textures of α_t − α_t[histogram] for the per-configuration
+    /// RMS over textures of α_t − α_t(histogram) for the per-configuration
     /// GMM (None if its fit failed), the meta-model, the manual kernel.
     pub per_config: Option<f64>,
     pub meta: f64,
