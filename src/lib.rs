@@ -38,6 +38,7 @@ pub mod forward;
 pub mod io;
 pub mod metamodel;
 pub mod oracles;
+pub mod pair;
 pub mod plot;
 pub mod provenance;
 pub mod render;

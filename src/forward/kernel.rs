@@ -111,32 +111,7 @@ impl PairGrid {
     }
 }
 
-/// Which scattering vertices a histogram holds.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum VertexClass {
-    All,
-    First,
-    Last,
-}
-
-impl VertexClass {
-    pub const ALL: [VertexClass; 3] = [VertexClass::All, VertexClass::First, VertexClass::Last];
-
-    fn slot(self) -> usize {
-        self as usize
-    }
-
-    /// Parses `all|first|last`.
-    pub fn parse(s: &str) -> Result<Self> {
-        match s {
-            "all" => Ok(VertexClass::All),
-            "first" => Ok(VertexClass::First),
-            "last" => Ok(VertexClass::Last),
-            _ => Err(Error::param("--vertices", s, "all, first or last")),
-        }
-    }
-}
+pub use crate::pair::VertexClass;
 
 /// Counts of one vertex class in one (albedo, distance) cell.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]

@@ -32,7 +32,7 @@
 use super::kernel::scale_for_density;
 use super::kernel::{Component, Gmm, optical_distance};
 use crate::error::{Error, Result};
-use crate::forward::kernel::VertexClass;
+use crate::pair::VertexClass;
 use crate::provenance::Provenance;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
