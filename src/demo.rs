@@ -1,6 +1,8 @@
-//! `svkernel demo`: the end-to-end job on shipped data. For now (the
-//! foundation stage) it simulates one profile of the default medium, checks
-//! R_d against the adding-doubling oracle and plots p(r).
+//! `svkernel demo`: the end-to-end job on shipped data. For now it simulates
+//! one profile of the default medium, checks R_d against the adding-doubling
+//! oracle and plots p(r); then compares the shipped basis BSSRDF with that
+//! simulation and prints the learned aggregation kernel next to the manual one
+//! (the rendering comparison comes with the renderer).
 
 use crate::error::Result;
 use crate::forward::medium::{Medium, Source};
@@ -17,7 +19,17 @@ pub struct DemoReport {
     pub oracle_accuracy: f64,
     pub plot: PathBuf,
     pub json: PathBuf,
+    /// The shipped basis model's (R_d, R₁, Rₘ) at the demo's albedo.
+    pub basis: (f64, f64, f64),
+    /// The learned (all-vertex) and the manual kernel at d = 1 MFP.
+    pub learned: crate::metamodel::kernel::Gmm,
+    pub manual: crate::metamodel::kernel::Gmm,
 }
+
+/// The shipped basis model and kernel meta-model (paths relative to the
+/// repository root, where `cargo run` starts).
+pub const SHIPPED_BASIS: &str = "data/profiles/basis.json";
+pub const SHIPPED_META: &str = "data/profiles/metamodel.json";
 
 /// Simulates `paths` paths of the default medium (η = 1.5, g = 0.3) at
 /// α = 0.9 with a pencil beam and writes `profile.json` and `profile.png`
@@ -45,11 +57,19 @@ pub fn run(out: &Path, paths: u64, progress: bool) -> Result<DemoReport> {
     crate::io::write_json_atomic(&json, &doc)?;
     crate::plot::profile_plot(&doc, &plot)?;
     let oracle = crate::oracles::lookup(&crate::oracles::RD_ETA15_G03, alpha).unwrap_or(f64::NAN);
+    let basis = crate::metamodel::basis::BasisModel::load(Path::new(SHIPPED_BASIS))?;
+    let (r1, rm) = basis.r_1_m(alpha);
+    let meta = crate::metamodel::meta::MetaModelFile::load(Path::new(SHIPPED_META))?;
     Ok(DemoReport {
         doc,
         oracle,
         oracle_accuracy: crate::oracles::accuracy(false, alpha),
         plot,
         json,
+        basis: (r1 + rm, r1, rm),
+        learned: meta
+            .eval(crate::pair::VertexClass::All, 1.0, alpha, 1.0)
+            .gmm,
+        manual: crate::metamodel::kernel::manual_kernel(1.0),
     })
 }

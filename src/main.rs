@@ -498,6 +498,23 @@ fn demo(out: PathBuf, paths: u64) -> Result<()> {
         d.R_d - r.oracle,
         z
     );
+    let (rd, r1, rm) = r.basis;
+    println!(
+        "shipped basis BSSRDF at α = 0.9: R_d = {rd:.5} (simulation {:.5}, {:+.2} %), R_1 = {r1:.5}, R_m = {rm:.5}",
+        d.R_d,
+        100.0 * (rd / d.R_d - 1.0)
+    );
+    println!(
+        "aggregation kernel at d = 1 MFP, α = 0.9 (all vertices; t from x_i toward x_e, MFP):"
+    );
+    for (name, g) in [("learned", &r.learned), ("manual ", &r.manual)] {
+        let parts: Vec<String> = g
+            .components
+            .iter()
+            .map(|c| format!("w {:.3} t {:+.3} σ {:.3}", c.weight, c.t, c.sigma))
+            .collect();
+        println!("  {name}: {}", parts.join(" | "));
+    }
     println!("wrote {} and {}", r.json.display(), r.plot.display());
     Ok(())
 }
