@@ -293,6 +293,21 @@ pub fn aggregation_table(rows: &[AggregationRow]) -> String {
     s
 }
 
+/// A curve coloured by component; albedos alternate solid and dashed lines.
+fn styled(
+    label: String,
+    points: Vec<(f64, f64)>,
+    albedo_index: usize,
+    k: usize,
+) -> crate::plot::Series {
+    let color = k + 3 * (albedo_index / 2);
+    if albedo_index % 2 == 0 {
+        crate::plot::Series::line(label, points, color)
+    } else {
+        crate::plot::Series::dashed(label, points, color)
+    }
+}
+
 /// Albedos and distances shown in the report's plots.
 const PLOT_ALPHAS: [f64; 3] = [0.6, 0.92, 0.99];
 const PLOT_DISTANCES: [f64; 3] = [0.35, 1.6, 6.5];
@@ -374,22 +389,27 @@ pub fn kernel_plots(
                     .map(|&d| (d, f(&m.eval(d, *a, 1.0).gmm, d)))
                     .collect::<Vec<_>>()
             };
-            let color = ci * m.k + k;
             let label = format!("α={a} k={k}");
-            w.push(Series::line(
+            // Centres and widths in units of λ = d/2 + 1 (the meta-model's
+            // own coordinates: bounded from near to far field).
+            let lam = |d: f64| 0.5 * d + 1.0;
+            w.push(styled(
                 label.clone(),
                 pick(&|g, _| g.components[k].weight),
-                color,
+                ci,
+                k,
             ));
-            t.push(Series::line(
+            t.push(styled(
                 label.clone(),
-                pick(&|g, d| g.components[k].t / d),
-                color,
+                pick(&|g, d| (g.components[k].t - 0.5 * d) / lam(d)),
+                ci,
+                k,
             ));
-            s.push(Series::line(
+            s.push(styled(
                 label,
-                pick(&|g, _| g.components[k].sigma),
-                color,
+                pick(&|g, d| g.components[k].sigma / lam(d)),
+                ci,
+                k,
             ));
         }
     }
@@ -407,12 +427,16 @@ pub fn kernel_plots(
     )?;
     chart(
         &dir.join("centres.png"),
-        &axes("meta-model (all vertices): centres", "t_k / d", false),
+        &axes(
+            "meta-model (all vertices): centres (t_k − d/2)/λ, λ = d/2 + 1",
+            "μ_k",
+            false,
+        ),
         &t,
     )?;
     chart(
         &dir.join("widths.png"),
-        &axes("meta-model (all vertices): widths", "σ_k (MFP)", true),
+        &axes("meta-model (all vertices): widths σ_k/λ", "σ_k / λ", true),
         &s,
     )?;
     // Aggregation errors against d.
