@@ -301,7 +301,7 @@ fn styled(
     k: usize,
 ) -> crate::plot::Series {
     let color = k + 3 * (albedo_index / 2);
-    if albedo_index % 2 == 0 {
+    if albedo_index.is_multiple_of(2) {
         crate::plot::Series::line(label, points, color)
     } else {
         crate::plot::Series::dashed(label, points, color)
