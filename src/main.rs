@@ -198,6 +198,63 @@ enum Simulate {
     Kernels(KernelArgs),
 }
 
+/// The medium flags shared by the simulate commands.
+#[derive(Args)]
+struct MediumArgs {
+    /// Relative index of refraction n_inside/n_outside, in [1, 3].
+    #[arg(long, default_value_t = 1.5)]
+    eta: f64,
+    /// Henyey–Greenstein g in (−1, 1); g > 0 scatters forward.
+    #[arg(long, default_value_t = 0.3)]
+    g: f64,
+    /// Density ρ > 0 (σ_t = ρ per MFP).
+    #[arg(long, default_value_t = 1.0)]
+    density: f64,
+}
+
+/// How a simulation runs: size, streams, shard, checkpoints, output.
+#[derive(Args)]
+struct RunArgs {
+    /// Number of paths (accepts 1e7 notation; kernels walk each once per albedo).
+    #[arg(long, default_value = "1e6", value_parser = parse_count)]
+    paths: u64,
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Run only the k-th of N slices (0-based), for `merge` later.
+    #[arg(long)]
+    shard: Option<String>,
+    /// Stop a path after this many scattering events (counted as truncated).
+    #[arg(long, default_value_t = DEFAULT_MAX_EVENTS)]
+    max_events: u32,
+    /// Seconds between checkpoints (written to OUT.ckpt).
+    #[arg(long, default_value_t = 30.0)]
+    checkpoint_every: f64,
+    /// Continue from OUT.ckpt if it exists.
+    #[arg(long)]
+    resume: bool,
+    /// Output JSON document.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+impl RunArgs {
+    /// The parsed shard and the runner's options (validates the interval).
+    fn options(&self) -> Result<(Option<Shard>, RunOptions)> {
+        let shard = self.shard.as_deref().map(Shard::parse).transpose()?;
+        let every = self.checkpoint_every;
+        if !(every >= 0.0 && every.is_finite()) {
+            bail!("invalid --checkpoint-every = {every}: must be >= 0 seconds");
+        }
+        let opts = RunOptions {
+            checkpoint: Some(checkpoint_path(&self.out)),
+            checkpoint_every: Duration::from_secs_f64(every),
+            resume: self.resume,
+            progress: std::io::stderr().is_terminal(),
+        };
+        Ok((shard, opts))
+    }
+}
+
 #[derive(Args)]
 struct KernelArgs {
     /// Comma-separated albedos in [0, 1].
@@ -216,22 +273,8 @@ struct KernelArgs {
     /// Minimum scattering order of a contributing path (2: multiple scattering).
     #[arg(long, default_value_t = 2)]
     min_order: u32,
-    #[arg(long, default_value_t = 1.5)]
-    eta: f64,
-    #[arg(long, default_value_t = 0.3)]
-    g: f64,
-    /// Density ρ > 0 (σ_t = ρ per MFP).
-    #[arg(long, default_value_t = 1.0)]
-    density: f64,
-    /// Number of paths, each walked once per albedo (accepts 1e7 notation).
-    #[arg(long, default_value = "1e6", value_parser = parse_count)]
-    paths: u64,
-    #[arg(long, default_value_t = 1)]
-    seed: u64,
-    #[arg(long)]
-    shard: Option<String>,
-    #[arg(long, default_value_t = DEFAULT_MAX_EVENTS)]
-    max_events: u32,
+    #[command(flatten)]
+    medium: MediumArgs,
     /// Histogram bins along the axis and across it, and the extent in units of λ = d/2 + 1/ρ.
     #[arg(long, default_value_t = PairGrid::default().nu)]
     nu: usize,
@@ -239,12 +282,8 @@ struct KernelArgs {
     nv: usize,
     #[arg(long, default_value_t = PairGrid::default().extent)]
     extent: f64,
-    #[arg(long, default_value_t = 30.0)]
-    checkpoint_every: f64,
-    #[arg(long)]
-    resume: bool,
-    #[arg(long)]
-    out: PathBuf,
+    #[command(flatten)]
+    run: RunArgs,
 }
 
 #[derive(Args)]
@@ -252,47 +291,22 @@ struct ProfileArgs {
     /// Single-scattering albedo α in [0, 1].
     #[arg(long)]
     albedo: f64,
-    /// Relative index of refraction n_inside/n_outside, in [1, 3].
-    #[arg(long, default_value_t = 1.5)]
-    eta: f64,
-    /// Henyey–Greenstein g in (−1, 1); g > 0 scatters forward.
-    #[arg(long, default_value_t = 0.3)]
-    g: f64,
-    /// Density ρ > 0 (σ_t = ρ per MFP).
-    #[arg(long, default_value_t = 1.0)]
-    density: f64,
+    #[command(flatten)]
+    medium: MediumArgs,
     /// Slab thickness in MFP (default: half-space).
     #[arg(long)]
     thickness: Option<f64>,
     /// pencil | collimated:R | diffuse:R (R in MFP).
     #[arg(long, default_value = "pencil")]
     source: String,
-    /// Number of paths (accepts 1e7 notation).
-    #[arg(long, default_value = "1e6", value_parser = parse_count)]
-    paths: u64,
-    #[arg(long, default_value_t = 1)]
-    seed: u64,
-    /// Run only the k-th of N slices (0-based), for `merge` later.
-    #[arg(long)]
-    shard: Option<String>,
-    /// Stop a path after this many scattering events (counted as truncated).
-    #[arg(long, default_value_t = DEFAULT_MAX_EVENTS)]
-    max_events: u32,
     /// lanes (8-wide f32 SIMD, default) or scalar (plain f64).
     #[arg(long, default_value = "lanes")]
     engine: String,
-    /// Seconds between checkpoints (written to OUT.ckpt).
-    #[arg(long, default_value_t = 30.0)]
-    checkpoint_every: f64,
-    /// Continue from OUT.ckpt if it exists.
-    #[arg(long)]
-    resume: bool,
     /// Also write the per-bin arrays as OUT.npy.
     #[arg(long)]
     npy: bool,
-    /// Output JSON document.
-    #[arg(long)]
-    out: PathBuf,
+    #[command(flatten)]
+    run: RunArgs,
 }
 
 /// Parses a count such as `1000000`, `1e6` or `2.5e7`.
@@ -313,19 +327,6 @@ fn checkpoint_path(out: &std::path::Path) -> PathBuf {
     PathBuf::from(s)
 }
 
-/// Run options shared by the simulate commands; validates the interval.
-fn run_options(out: &std::path::Path, every: f64, resume: bool) -> Result<RunOptions> {
-    if !(every >= 0.0 && every.is_finite()) {
-        bail!("invalid --checkpoint-every = {every}: must be >= 0 seconds");
-    }
-    Ok(RunOptions {
-        checkpoint: Some(checkpoint_path(out)),
-        checkpoint_every: Duration::from_secs_f64(every),
-        resume,
-        progress: std::io::stderr().is_terminal(),
-    })
-}
-
 /// Removes the checkpoint of a finished run.
 fn remove_checkpoint(out: &std::path::Path) -> Result<()> {
     let ckpt = checkpoint_path(out);
@@ -336,18 +337,18 @@ fn remove_checkpoint(out: &std::path::Path) -> Result<()> {
 }
 
 fn simulate_kernels(a: KernelArgs) -> Result<()> {
-    let shard = a.shard.as_deref().map(Shard::parse).transpose()?;
+    let (shard, opts) = a.run.options()?;
     let config = KernelConfig {
-        g: a.g,
-        eta: a.eta,
-        density: a.density,
+        g: a.medium.g,
+        eta: a.medium.eta,
+        density: a.medium.density,
         albedos: a.albedos,
         distances: a.distances,
         rel_width: a.rel_width,
         min_order: a.min_order,
-        paths: a.paths,
-        seed: a.seed,
-        max_events: a.max_events,
+        paths: a.run.paths,
+        seed: a.run.seed,
+        max_events: a.run.max_events,
         grid: PairGrid {
             nu: a.nu,
             nv: a.nv,
@@ -355,12 +356,11 @@ fn simulate_kernels(a: KernelArgs) -> Result<()> {
         },
     };
     config.validate()?;
-    let opts = run_options(&a.out, a.checkpoint_every, a.resume)?;
     let (tally, wall_s) = config.run(shard, &opts)?;
     let chunks = vec![chunk_range(config.paths, shard)];
     let doc = KernelDoc::new(config, shard, chunks, tally, wall_s, Provenance::current());
-    svkernel::io::write_json_compact_atomic(&a.out, &doc)?;
-    remove_checkpoint(&a.out)?;
+    svkernel::io::write_json_compact_atomic(&a.run.out, &doc)?;
+    remove_checkpoint(&a.run.out)?;
     print_kernel_summary(&doc);
     Ok(())
 }
@@ -383,9 +383,10 @@ fn print_kernel_summary(doc: &KernelDoc) {
 }
 
 fn simulate_profile(a: ProfileArgs) -> Result<()> {
-    let medium = Medium::new(a.albedo, a.g, a.eta, a.density, a.thickness)?;
+    let m = &a.medium;
+    let medium = Medium::new(a.albedo, m.g, m.eta, m.density, a.thickness)?;
     let source = Source::parse(&a.source)?;
-    let shard = a.shard.as_deref().map(Shard::parse).transpose()?;
+    let (shard, opts) = a.run.options()?;
     let engine = match a.engine.as_str() {
         "lanes" => Engine::Lanes,
         "scalar" => Engine::Scalar,
@@ -394,19 +395,18 @@ fn simulate_profile(a: ProfileArgs) -> Result<()> {
     let config = ProfileConfig {
         medium,
         source,
-        paths: a.paths,
-        seed: a.seed,
-        max_events: a.max_events,
+        paths: a.run.paths,
+        seed: a.run.seed,
+        max_events: a.run.max_events,
         bins: RadialBins::default(),
         engine,
     };
     config.validate()?;
-    let opts = run_options(&a.out, a.checkpoint_every, a.resume)?;
     let (tally, wall_s) = config.run(shard, &opts)?;
     let chunks = vec![chunk_range(config.paths, shard)];
     let doc = ProfileDoc::new(config, shard, chunks, tally, wall_s, Provenance::current());
-    write_doc(&doc, &a.out, a.npy)?;
-    remove_checkpoint(&a.out)?;
+    write_doc(&doc, &a.run.out, a.npy)?;
+    remove_checkpoint(&a.run.out)?;
     print_summary(&doc);
     Ok(())
 }

@@ -101,10 +101,7 @@ pub fn chart(path: &Path, axes: &Axes, series: &[Series]) -> Result<()> {
     let ys = series.iter().flat_map(|s| s.points.iter().map(|p| p.1));
     let (x0, x1) = range(xs, axes.log_x);
     let (y0, y1) = range(ys, axes.log_y);
-    let tmp = crate::io::temp_sibling(path);
-    let draw = || -> std::result::Result<(), Box<dyn std::error::Error>> {
-        let root = BitMapBackend::new(&tmp, (900, 600)).into_drawing_area();
-        root.fill(&WHITE)?;
+    png(path, (900, 600), |root| {
         macro_rules! builder {
             () => {
                 ChartBuilder::on(&root)
@@ -178,10 +175,30 @@ pub fn chart(path: &Path, axes: &Axes, series: &[Series]) -> Result<()> {
             (false, true) => body!(builder!().build_cartesian_2d(x0..x1, (y0..y1).log_scale())?),
             (false, false) => body!(builder!().build_cartesian_2d(x0..x1, y0..y1)?),
         }
+        Ok(())
+    })
+}
+
+/// What a drawing closure returns.
+type DrawResult = std::result::Result<(), Box<dyn std::error::Error>>;
+
+/// Draws a PNG of `size` pixels to `path`: `draw` paints on a white root
+/// area, which is written to a temporary sibling and renamed, so a failure
+/// leaves nothing behind (the error names the file).
+fn png(
+    path: &Path,
+    size: (u32, u32),
+    draw: impl FnOnce(&DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>) -> DrawResult,
+) -> Result<()> {
+    let tmp = crate::io::temp_sibling(path);
+    let result = (|| -> DrawResult {
+        let root = BitMapBackend::new(&tmp, size).into_drawing_area();
+        root.fill(&WHITE)?;
+        draw(&root)?;
         root.present()?;
         Ok(())
-    };
-    draw().map_err(|e| {
+    })();
+    result.map_err(|e| {
         let _ = std::fs::remove_file(&tmp);
         Error::format(path, "(plot)", e)
     })?;
@@ -250,11 +267,7 @@ pub fn heatmaps(path: &Path, title: &str, panels: &[Panel], cols: usize) -> Resu
     let cols = cols.max(1);
     let rows = panels.len().div_ceil(cols);
     let (pw, ph) = (220u32, 170u32);
-    let tmp = crate::io::temp_sibling(path);
-    let draw = || -> std::result::Result<(), Box<dyn std::error::Error>> {
-        let root =
-            BitMapBackend::new(&tmp, (pw * cols as u32, ph * rows as u32 + 40)).into_drawing_area();
-        root.fill(&WHITE)?;
+    png(path, (pw * cols as u32, ph * rows as u32 + 40), |root| {
         let (head, body) = root.split_vertically(40);
         head.titled(title, ("sans-serif", 20))?;
         let areas = body.split_evenly((rows, cols));
@@ -275,14 +288,8 @@ pub fn heatmaps(path: &Path, title: &str, panels: &[Panel], cols: usize) -> Resu
                 }
             }
         }
-        root.present()?;
         Ok(())
-    };
-    draw().map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        Error::format(path, "(plot)", e)
-    })?;
-    crate::io::commit(&tmp, path)
+    })
 }
 
 /// Colour ramp for v ∈ [0, 1]: dark blue → teal → yellow (viridis-like).

@@ -20,6 +20,18 @@ fn json(p: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
 }
 
+/// `svkernel merge PARTS --out OUT`, which must succeed.
+fn merge_ok(parts: &[PathBuf], out: &Path) {
+    let o = bin()
+        .arg("merge")
+        .args(parts)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
 fn profile(args: &[&str], out: &Path) -> std::process::Output {
     bin()
         .args(["simulate", "profile"])
@@ -114,14 +126,7 @@ fn shards_merge_to_the_unsharded_result() {
         parts.push(p);
     }
     let merged = d.join("merged.json");
-    let o = bin()
-        .arg("merge")
-        .args(&parts)
-        .arg("--out")
-        .arg(&merged)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    merge_ok(&parts, &merged);
     let (a, b) = (json(&full), json(&merged));
     assert_eq!(a["tally"], b["tally"]);
     assert_eq!(a["bins"], b["bins"]);
@@ -226,14 +231,7 @@ fn kernel_shards_merge_to_the_unsharded_result() {
         })
         .collect();
     let merged = d.join("merged.json");
-    let o = bin()
-        .arg("merge")
-        .args(&parts)
-        .arg("--out")
-        .arg(&merged)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    merge_ok(&parts, &merged);
     let (a, b) = (json(&full), json(&merged));
     assert_eq!(a["tally"], b["tally"]);
     assert_eq!(a["summary"], b["summary"]);

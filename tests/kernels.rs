@@ -277,7 +277,6 @@ fn hard_cases_stay_finite() {
     // α = 0: nothing scatters twice.
     let c = config(&[0.0], &[1.0], 1.0, 20_000, 5);
     assert_eq!(doc(&c, None).tally.cells[0][0].paths, 0);
-    let _ = threshold_u32(0.5);
 }
 
 #[test]

@@ -77,9 +77,10 @@ impl Texture {
     }
 }
 
-/// α_t of each kernel histogram for each texture; the texture's bin means
-/// are computed once and shared by all kernels.
-fn aggregated(hists: &[&KernelHistogram], seed: u64) -> Vec<Vec<f64>> {
+/// Per texture: the texture's bin means over the grid of `hists[0]` (one
+/// evaluation shared by every kernel and by the noise estimate) and α_t of
+/// each kernel histogram.
+fn aggregated(hists: &[&KernelHistogram], seed: u64) -> Vec<(Vec<f64>, Vec<f64>)> {
     let grid = hists[0];
     let (te, se) = (&grid.t_edges, &grid.s_edges);
     (0..TEXTURES)
@@ -90,14 +91,15 @@ fn aggregated(hists: &[&KernelHistogram], seed: u64) -> Vec<Vec<f64>> {
                 .flat_map(|t| se.windows(2).map(move |s| (t[0], t[1], s[0], s[1])))
                 .map(|(t0, t1, s0, s1)| tex.bin_mean(t0, t1, s0, s1))
                 .collect();
-            hists
+            let at = hists
                 .iter()
                 .map(|h| {
                     let m: f64 = h.mass.iter().map(|v| v.max(0.0)).sum();
                     let a: f64 = h.mass.iter().zip(&means).map(|(v, a)| v.max(0.0) * a).sum();
                     if m > 0.0 { a / m } else { f64::NAN }
                 })
-                .collect()
+                .collect();
+            (means, at)
         })
         .collect()
 }
@@ -141,28 +143,18 @@ pub fn aggregation_row(
     }
     let seed = 0xA66 ^ (cell.alpha.to_bits() >> 3) ^ cell.d.to_bits();
     let at = aggregated(&list, seed);
-    let err = |k: usize| rms(at.iter().map(|r| r[k] - r[0]));
+    let err = |k: usize| rms(at.iter().map(|(_, r)| r[k] - r[0]));
     // Noise: α_t = Σ m A / Σ m; first order σ² = Σ σ_b² (A_b − α_t)² / (Σm)².
-    let noise = {
-        let (te, se) = (&h.t_edges, &h.s_edges);
-        let m: f64 = h.mass.iter().map(|v| v.max(0.0)).sum();
-        rms((0..TEXTURES.min(8)).map(|k| {
-            let tex = Texture::new(seed, k);
-            let means: Vec<f64> = te
-                .windows(2)
-                .flat_map(|t| se.windows(2).map(move |s| (t[0], t[1], s[0], s[1])))
-                .map(|(t0, t1, s0, s1)| tex.bin_mean(t0, t1, s0, s1))
-                .collect();
-            let at0 = at[k as usize][0];
-            (h.sigma
-                .iter()
-                .zip(&means)
-                .map(|(s, a)| (s * (a - at0)).powi(2))
-                .sum::<f64>())
-            .sqrt()
-                / m.max(1e-300)
-        }))
-    };
+    let m: f64 = h.mass.iter().map(|v| v.max(0.0)).sum();
+    let noise = rms(at.iter().take(8).map(|(means, r)| {
+        let s2: f64 = h
+            .sigma
+            .iter()
+            .zip(means)
+            .map(|(s, a)| (s * (a - r[0])).powi(2))
+            .sum();
+        s2.sqrt() / m.max(1e-300)
+    }));
     AggregationRow {
         class,
         alpha: cell.alpha,

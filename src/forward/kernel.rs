@@ -170,6 +170,15 @@ impl ClassTally {
     pub fn vertices(&self) -> u64 {
         self.count.iter().sum()
     }
+
+    /// Mean u and mean v² over the tallied vertices (0 if none).
+    pub fn means(&self) -> (f64, f64) {
+        let nv = self.vertices().max(1) as f64;
+        (
+            self.sum_u_q as f64 / MOMENT_Q / nv,
+            self.sum_v2_q as f64 / MOMENT_Q / nv,
+        )
+    }
 }
 
 /// One (albedo, distance) cell.
@@ -269,7 +278,7 @@ impl CellTally {
         let bins = grid.bins();
         let (mass, sigma): (Vec<f64>, Vec<f64>) = (0..bins).map(stat).unzip();
         let (overflow, overflow_sigma) = stat(bins);
-        let nv = total.max(1) as f64;
+        let (mean_u, mean_v2) = cl.means();
         NormalizedHistogram {
             albedo,
             d,
@@ -283,8 +292,8 @@ impl CellTally {
             overflow_sigma,
             paths: self.paths,
             mean_vertices,
-            mean_u: cl.sum_u_q as f64 / MOMENT_Q / nv,
-            mean_v2: cl.sum_v2_q as f64 / MOMENT_Q / nv,
+            mean_u,
+            mean_v2,
         }
     }
 }
@@ -548,23 +557,15 @@ impl KernelDoc {
             for (id, d) in config.distances.iter().enumerate() {
                 let c = &tally.cells[ia][id];
                 let n = c.paths.max(1) as f64;
-                let moments = |k: usize, v2: bool| {
-                    let cl = &c.classes[k];
-                    let nv = cl.vertices().max(1) as f64;
-                    if v2 {
-                        cl.sum_v2_q as f64 / MOMENT_Q / nv
-                    } else {
-                        cl.sum_u_q as f64 / MOMENT_Q / nv
-                    }
-                };
+                let means = c.classes.each_ref().map(ClassTally::means);
                 summary.push(CellSummary {
                     albedo: *a,
                     d: *d,
                     paths: c.paths,
                     fraction: c.paths as f64 / tally.paths.max(1) as f64,
                     mean_vertices: c.events as f64 / n,
-                    mean_u: std::array::from_fn(|k| moments(k, false)),
-                    mean_v2: std::array::from_fn(|k| moments(k, true)),
+                    mean_u: means.map(|m| m.0),
+                    mean_v2: means.map(|m| m.1),
                 });
             }
         }

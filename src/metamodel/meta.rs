@@ -222,17 +222,9 @@ impl MetaModel {
         std::array::from_fn(|j| acc[j])
     }
 
-    /// The mixture from shape parameters θ at unit-density distance d.
-    pub fn gmm_from_params(k: usize, theta: &[f64], d: f64) -> Gmm {
-        let mut g = Gmm {
-            components: Vec::with_capacity(k),
-        };
-        Self::gmm_scaled_into(k, theta, d, 1.0, &mut g);
-        g
-    }
-
-    /// [`Self::gmm_from_params`] with every length multiplied by `scale`
-    /// (one allocation: the component list).
+    /// The mixture from shape parameters θ at unit-density distance d (module
+    /// docs), every length multiplied by `scale`, written into `out`
+    /// (reusing its allocation).
     #[inline]
     fn gmm_scaled_into(k: usize, theta: &[f64], d: f64, scale: f64, out: &mut Gmm) {
         let lambda = 0.5 * d + 1.0;

@@ -99,20 +99,12 @@ fn default_reference_paths() -> f64 {
     1e6
 }
 
+/// `[medium]`; absent keys take the defaults of [`Default`].
 #[derive(Clone, Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(deny_unknown_fields, default)]
 struct RawMedium {
-    #[serde(default = "default_eta")]
     eta: f64,
-    #[serde(default = "default_g")]
     g: f64,
-}
-
-fn default_eta() -> f64 {
-    1.5
-}
-fn default_g() -> f64 {
-    0.3
 }
 
 impl Default for RawMedium {
@@ -121,48 +113,31 @@ impl Default for RawMedium {
     }
 }
 
+/// `[light]`.
 #[derive(Clone, Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(deny_unknown_fields, default)]
 struct RawLight {
-    #[serde(default = "default_kind")]
     kind: String,
-    #[serde(default = "one")]
     radius: f64,
-    #[serde(default = "one")]
     irradiance: f64,
-}
-
-fn default_kind() -> String {
-    "collimated".into()
-}
-fn one() -> f64 {
-    1.0
 }
 
 impl Default for RawLight {
     fn default() -> Self {
         RawLight {
-            kind: default_kind(),
+            kind: "collimated".into(),
             radius: 1.0,
             irradiance: 1.0,
         }
     }
 }
 
+/// `[image]`.
 #[derive(Clone, Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(deny_unknown_fields, default)]
 struct RawImage {
-    #[serde(default = "default_resolution")]
     resolution: usize,
-    #[serde(default = "default_half_width")]
     half_width: f64,
-}
-
-fn default_resolution() -> usize {
-    64
-}
-fn default_half_width() -> f64 {
-    4.0
 }
 
 impl Default for RawImage {
