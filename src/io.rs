@@ -107,8 +107,11 @@ pub fn read_json<T: DeserializeOwned>(path: &Path) -> Result<T> {
     })
 }
 
-/// Writes a 2-D f64 array as `.npy` (readable by `numpy.load`), atomically.
-pub fn write_npy_atomic(path: &Path, array: &ndarray::Array2<f64>) -> Result<()> {
+/// Writes an f64 array as `.npy` (readable by `numpy.load`), atomically.
+pub fn write_npy_atomic<D: ndarray::Dimension>(
+    path: &Path,
+    array: &ndarray::Array<f64, D>,
+) -> Result<()> {
     use ndarray_npy::WriteNpyExt;
     write_atomic_with(path, |f| {
         array

@@ -76,6 +76,8 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Render a scene with every method and the brute-force reference.
+    Render(RenderArgs),
     /// End-to-end demo on shipped data.
     Demo {
         #[arg(long, default_value = "out/demo")]
@@ -86,8 +88,64 @@ enum Command {
     },
 }
 
+/// `svkernel render SCENE.toml`.
+#[derive(Args)]
+struct RenderArgs {
+    /// Scene file (TOML; schema in the README).
+    scene: PathBuf,
+    /// Methods to render (comma-separated or repeated): reference, point,
+    /// factorized, line, ellipse, manual, learned. Default: the scene's
+    /// methods and the reference.
+    #[arg(long = "method", value_delimiter = ',')]
+    methods: Vec<String>,
+    /// Light samples per pixel of the model methods (default: the scene's `samples`).
+    #[arg(long)]
+    spp: Option<u32>,
+    /// uniform | importance | mis
+    #[arg(long, default_value = "mis")]
+    sampling: String,
+    /// Kernel-method variant: not density-scaled aggregation.
+    #[arg(long)]
+    plain: bool,
+    /// Kernel-method variant: first/last-vertex kernels instead of point albedos.
+    #[arg(long)]
+    vertex_kernels: bool,
+    /// Kernel-method variant: a second pass with α₀ = α_t.
+    #[arg(long)]
+    two_pass: bool,
+    /// Paths of the reference (default: the scene's `reference_paths`; 1e7 notation).
+    #[arg(long, value_parser = parse_count)]
+    paths: Option<u64>,
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Reference: run only the k-th of N slices (0-based); merge the
+    /// `reference.tally.json` files with `svkernel merge`.
+    #[arg(long)]
+    shard: Option<String>,
+    /// Reference: use merged tallies (one per pass) instead of simulating.
+    #[arg(long = "reference-tally", value_delimiter = ',')]
+    reference_tallies: Vec<PathBuf>,
+    /// Seconds between reference checkpoints (OUT/reference.<pass>.ckpt).
+    #[arg(long, default_value_t = 30.0)]
+    checkpoint_every: f64,
+    /// Continue the reference from its checkpoint.
+    #[arg(long)]
+    resume: bool,
+    #[arg(long, default_value = DEFAULT_BASIS)]
+    basis: PathBuf,
+    #[arg(long, default_value = DEFAULT_BASIS_DIFFUSE)]
+    basis_diffuse: PathBuf,
+    #[arg(long, default_value = DEFAULT_META)]
+    model: PathBuf,
+    /// Output directory.
+    #[arg(long, default_value = "out/render")]
+    out: PathBuf,
+}
+
 /// The shipped basis model.
 const DEFAULT_BASIS: &str = "data/profiles/basis.json";
+/// The shipped diffuse-incidence basis model.
+const DEFAULT_BASIS_DIFFUSE: &str = "data/profiles/basis_diffuse.json";
 const DEFAULT_KERNELS: &str = "data/kernels/eta1.5_g0.3_pencil.json";
 const DEFAULT_META: &str = "data/profiles/metamodel.json";
 /// The shipped profiles of the default medium.
@@ -463,6 +521,11 @@ fn merge(inputs: Vec<PathBuf>, out: PathBuf) -> Result<()> {
         format: String,
     }
     let head: Head = svkernel::io::read_json(&inputs[0])?;
+    if head.format == svkernel::render::reference::REFERENCE_FORMAT {
+        svkernel::render::job::merge_reference(&inputs, &out)?;
+        println!("merged {} reference tallies into {}", inputs.len(), out.display());
+        return Ok(());
+    }
     if head.format == kernel::KERNEL_FORMAT {
         let docs = inputs
             .into_iter()
@@ -762,12 +825,84 @@ fn profile_query(albedo: f64, radii: &[f64], model: &std::path::Path) -> Result<
     Ok(())
 }
 
+/// `svkernel render`.
+fn render(a: RenderArgs) -> Result<()> {
+    use svkernel::render::estimator::Sampling;
+    use svkernel::render::job::{RenderOptions, Target, render_scene, tag_or, write_outputs};
+    use svkernel::render::scene::Scene;
+    use svkernel::render::svbssrdf::Variant;
+    let scene = Scene::load(&a.scene)?;
+    let targets = a
+        .methods
+        .iter()
+        .map(|m| Target::parse(m))
+        .collect::<svkernel::Result<Vec<_>>>()?;
+    if a.spp == Some(0) {
+        bail!("invalid --spp = 0: must be >= 1");
+    }
+    let every = a.checkpoint_every;
+    if !(every >= 0.0 && every.is_finite()) {
+        bail!("invalid --checkpoint-every = {every}: must be >= 0 seconds");
+    }
+    let progress = std::io::stderr().is_terminal();
+    let opts = RenderOptions {
+        targets,
+        spp: a.spp,
+        sampling: Sampling::parse(&a.sampling)?,
+        variant: Variant {
+            plain: a.plain,
+            vertex_kernels: a.vertex_kernels,
+            two_pass: a.two_pass,
+        },
+        seed: a.seed,
+        reference_paths: a.paths,
+        basis: a.basis,
+        basis_diffuse: a.basis_diffuse,
+        meta: a.model,
+        shard: a.shard.as_deref().map(Shard::parse).transpose()?,
+        run: RunOptions {
+            checkpoint: Some(a.out.join("reference")),
+            checkpoint_every: Duration::from_secs_f64(every),
+            resume: a.resume,
+            progress,
+        },
+        reference_tallies: a.reference_tallies,
+        out: a.out.clone(),
+    };
+    let passes = render_scene(&scene, &opts)?;
+    let doc = write_outputs(&scene, &opts, &passes)?;
+    println!("scene {} → {}", scene.name, a.out.display());
+    for (pass, pd) in passes.iter().zip(doc["passes"].as_array().into_iter().flatten()) {
+        println!("pass {}:", tag_or(&pass.tag));
+        println!("  {:<11} {:>9} {:>10} {:>10}", "method", "time [s]", "rel RMSE", "rel bias");
+        for m in pd["methods"].as_array().into_iter().flatten() {
+            let f = |k: &str| {
+                m["metrics"][k]
+                    .as_f64()
+                    .map_or("—".to_string(), |v| format!("{v:.4}"))
+            };
+            println!(
+                "  {:<11} {:>9.2} {:>10} {:>10}",
+                m["method"].as_str().unwrap_or(""),
+                m["wall_s"].as_f64().unwrap_or(0.0),
+                f("rel_rmse"),
+                f("rel_bias")
+            );
+        }
+        if let Some(e) = pass.reference_events_per_s {
+            println!("  reference: {e:.3e} scattering events/s");
+        }
+    }
+    Ok(())
+}
+
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Simulate(Simulate::Profile(a)) => simulate_profile(a),
         Command::Simulate(Simulate::Kernels(a)) => simulate_kernels(a),
         Command::Merge { inputs, out } => merge(inputs, out),
+        Command::Render(a) => render(a),
         Command::Demo { out, paths } => demo(out, paths),
         Command::Fit(f) => fit(f),
         Command::Profile {

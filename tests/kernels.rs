@@ -165,7 +165,7 @@ impl Scene {
         let mut rng = PathRng::new(77, path);
         let start = launch(&Source::Pencil, self.medium.eta, &mut rng).unwrap();
         vertices.clear();
-        let (fate, n) = walk_general(&self.medium, albedo, 100_000, start, &mut rng, |v| {
+        let (fate, n) = walk_general(&self.medium, albedo, 100_000, start, &mut rng, |v, _| {
             vertices.push(v)
         });
         match fate {
@@ -334,8 +334,8 @@ fn delta_tracking_with_constant_density_is_the_plain_walk() {
         let s1 = launch(&Source::Pencil, 1.5, &mut r1).unwrap();
         let s2 = launch(&Source::Pencil, 1.5, &mut r2).unwrap();
         let (mut v1, mut v2) = (Vec::new(), Vec::new());
-        let a = walk_general(&medium, &albedo, 10_000, s1, &mut r1, |v| v1.push(v));
-        let b = walk_delta(&medium, &albedo, &density, 10_000, s2, &mut r2, |v| {
+        let a = walk_general(&medium, &albedo, 10_000, s1, &mut r1, |v, _| v1.push(v));
+        let b = walk_delta(&medium, &albedo, &density, 10_000, s2, &mut r2, |v, _| {
             v2.push(v)
         });
         assert_eq!(a, b);
@@ -361,9 +361,9 @@ fn null_collisions_do_not_bias_the_walk() {
             let mut rng = PathRng::new(seed, path);
             let s = launch(&Source::Pencil, 1.5, &mut rng).unwrap();
             let (fate, _) = if delta {
-                walk_delta(&medium, &albedo, &density, 100_000, s, &mut rng, |_| {})
+                walk_delta(&medium, &albedo, &density, 100_000, s, &mut rng, |_, _| {})
             } else {
-                walk_general(&medium, &albedo, 100_000, s, &mut rng, |_| {})
+                walk_general(&medium, &albedo, 100_000, s, &mut rng, |_, _| {})
             };
             if let Fate::Exit { x, y } = fate {
                 exits += 1;

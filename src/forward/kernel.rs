@@ -451,7 +451,7 @@ impl KernelConfig {
                 let mut rng = base;
                 vertices.clear();
                 let (fate, n) =
-                    walk_general(medium, albedo, self.max_events, start, &mut rng, |v| {
+                    walk_general(medium, albedo, self.max_events, start, &mut rng, |v, _| {
                         vertices.push([v[0], v[1]])
                     });
                 let Fate::Exit { x, y } = fate else { continue };
@@ -754,7 +754,7 @@ impl<A: super::walk::AlbedoField + Sync, D: super::walk::DensityField + Sync>
                 self.max_events,
                 start,
                 &mut rng,
-                |v| vertices.push([v[0], v[1]]),
+                |v, _| vertices.push([v[0], v[1]]),
             );
             let Fate::Exit { x, y } = fate else { continue };
             let r = x.hypot(y);

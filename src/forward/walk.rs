@@ -174,12 +174,12 @@ fn wall(
 /// scattering events.
 pub fn walk(medium: &Medium, max_events: u32, start: Launched, rng: &mut PathRng) -> (Fate, u32) {
     let albedo = UniformAlbedo(threshold_u32(medium.alpha));
-    walk_general(medium, &albedo, max_events, start, rng, |_| {})
+    walk_general(medium, &albedo, max_events, start, rng, |_, _| {})
 }
 
 /// The walk with the albedo read from `albedo` at every collision (the
 /// medium's own `alpha` is ignored) and `visit` called with the position of
-/// every scattering vertex, in order. Density stays homogeneous (σ_t of
+/// every scattering vertex and the direction the path arrived in, in order. Density stays homogeneous (σ_t of
 /// `medium`). The stream is consumed exactly as by [`walk`]: with a uniform
 /// field both give the same path. The azimuth φ = 2π(b + ½)/t uses the local
 /// threshold t, below which b is uniform, so it stays exact.
@@ -190,7 +190,7 @@ pub fn walk_general<A: AlbedoField>(
     max_events: u32,
     start: Launched,
     rng: &mut PathRng,
-    mut visit: impl FnMut(Vec3),
+    mut visit: impl FnMut(Vec3, Vec3),
 ) -> (Fate, u32) {
     let sigma_t = medium.sigma_t();
     let inv_eta = 1.0 / medium.eta;
@@ -217,7 +217,7 @@ pub fn walk_general<A: AlbedoField>(
             return (Fate::Absorbed, n);
         }
         n += 1;
-        visit([x, y, z]);
+        visit([x, y, z], w);
         if n >= max_events {
             return (Fate::Truncated, n);
         }
@@ -253,7 +253,7 @@ pub fn walk_delta<A: AlbedoField, D: DensityField>(
     max_events: u32,
     start: Launched,
     rng: &mut PathRng,
-    mut visit: impl FnMut(Vec3),
+    mut visit: impl FnMut(Vec3, Vec3),
 ) -> (Fate, u32) {
     let sigma_bar = density.majorant();
     let inv_eta = 1.0 / medium.eta;
@@ -290,7 +290,7 @@ pub fn walk_delta<A: AlbedoField, D: DensityField>(
             return (Fate::Absorbed, n);
         }
         n += 1;
-        visit([x, y, z]);
+        visit([x, y, z], w);
         if n >= max_events {
             return (Fate::Truncated, n);
         }

@@ -39,7 +39,7 @@ pub struct Component {
 
 /// A kernel K(t, s) = Σ_k w_k N₂((t, s); (t_k, s_k), σ_k² I) in the pair
 /// frame (module docs). A valid kernel ([`Gmm::is_valid`]) has unit mass.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Gmm {
     pub components: Vec<Component>,
 }

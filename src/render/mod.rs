@@ -1,6 +1,12 @@
-//! Rendering (design §3 step 4 and §4): the SV-BSSRDF evaluation and what it
-//! needs, starting with the Gaussian pyramid that aggregates a material map
-//! under an isotropic Gaussian in O(1) ([`pyramid`]).
+//! Rendering (design §3 step 4 and §4): scenes, the SV-BSSRDF of every
+//! method ([`svbssrdf`]) with O(1) aggregation ([`pyramid`]), one estimator
+//! for all of them ([`estimator`]), the brute-force reference
+//! ([`reference`]), image output ([`output`]) and the `render` job ([`job`]).
 
+pub mod estimator;
+pub mod job;
+pub mod output;
 pub mod pyramid;
+pub mod reference;
 pub mod scene;
+pub mod svbssrdf;

@@ -177,7 +177,7 @@ pub enum LightKind {
 }
 
 /// What the image holds.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Observable {
     /// Radiant exitance M(x, y) per unit incident irradiance.
     Exitance,

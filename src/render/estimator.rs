@@ -1,0 +1,461 @@
+//! One Monte Carlo estimator for every model method (design §4 "Estimator").
+//!
+//! # What is estimated
+//! Pixel (i, j) of an N×N image of half-width W holds the average over its
+//! square P of the exitance
+//!
+//! M(x_e) = ∫_disk E·S(x_i, x_e) dA(x_i)   (E: irradiance on the light disk
+//! of radius R centred on the origin; S from [`super::svbssrdf`]),
+//!
+//! i.e. (1/|P|)∫_P M. Every sample draws x_e uniformly in P and one x_i by
+//! one of the strategies below; the sample value is E·S/p(x_i).
+//!
+//! # Strategies ([`Sampling`])
+//! * `uniform` — x_i uniform in the disk (concentric map), p_u = 1/(πR²):
+//!   the seed's estimator.
+//! * `importance` — x_i = x_e + r(cos φ, sin φ) with r drawn from the
+//!   homogeneous radial profile p(r; α_s, ρ_s) of the basis *truncated to
+//!   the radii that reach the disk*, r ∈ [max(0, D − R), D + R] (D = |x_e|),
+//!   by inverting its closed-form tail (safeguarded Newton), and φ uniform on
+//!   the arc of that circle that lies inside the disk (half-angle θ(r) from
+//!   the law of cosines). α_s is the channel-mean albedo at the pixel centre
+//!   (floored at [`IS_ALBEDO_FLOOR`]), ρ_s the density there. Per unit area
+//!   p_i(x_i) = p(r)/(m·2θ(r)·r), m the profile mass on the interval. Every
+//!   sample lands in the disk, and for a homogeneous medium S/p_i = m·θ/π
+//!   varies only through θ: the 1/r singularity of single scattering and the
+//!   profile's decay both cancel.
+//! * `mis` — the sample index j alternates (even: uniform, odd: importance)
+//!   and every sample is weighted by the balance heuristic
+//!   f/(n_u p_u + n_i p_i) (Veach 1997, §9.2.2).
+//!
+//! # Streams and errors
+//! Sample j of pixel p draws from [`PathRng`]`(seed, p·spp + j)`, whatever
+//! the method: all methods see the same x_e, the same x_i and the same
+//! strategy, so only S differs. The per-pixel standard error is
+//! √(Σ_s Var_s(v)/n_s) over the strategy groups s (sample variances of the
+//! group values v, n_s − 1 in the denominator).
+//!
+//! # Radiance along the normal
+//! For [`Observable::Radiance`] the model's exitance is converted with the
+//! internal-isotropy assumption of diffusion-based BSSRDFs (Jensen et al.
+//! 2001): L(n) = M·T(1)/(η²·2π∫₀¹T(μ)μ dμ), T(μ) = 1 − F(μ) leaving the
+//! medium ([`normal_radiance_factor`]); the reference measures L exactly.
+
+use super::scene::Observable;
+use super::svbssrdf::{R_MIN, Scratch, SvBssrdf};
+use crate::forward::fresnel::fresnel_dielectric;
+use crate::forward::rng::PathRng;
+use crate::forward::sampling::sample_disk_concentric;
+use crate::metamodel::basis::ExpMixture;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::f64::consts::PI;
+
+/// Lowest albedo whose profile drives importance sampling (below it the
+/// profile's mass vanishes; the shape changes little).
+pub const IS_ALBEDO_FLOOR: f64 = 0.05;
+
+/// How x_i is sampled (module docs).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Sampling {
+    Uniform,
+    Importance,
+    Mis,
+}
+
+impl Sampling {
+    pub fn parse(s: &str) -> crate::Result<Self> {
+        match s {
+            "uniform" => Ok(Sampling::Uniform),
+            "importance" => Ok(Sampling::Importance),
+            "mis" => Ok(Sampling::Mis),
+            _ => Err(crate::Error::param(
+                "--sampling",
+                s,
+                "uniform, importance or mis",
+            )),
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Sampling::Uniform => "uniform",
+            Sampling::Importance => "importance",
+            Sampling::Mis => "mis",
+        }
+    }
+}
+
+/// The light disk and the image window (MFP; the light is centred on the origin).
+#[derive(Clone, Copy, Debug)]
+pub struct View {
+    pub light_radius: f64,
+    pub irradiance: f64,
+    pub resolution: usize,
+    pub half_width: f64,
+}
+
+impl View {
+    /// The lower-left corner (x, y) of pixel (i, j) and the pixel size: row 0
+    /// is +y, column 0 is −x (pixel (i, j) covers x ∈ −W + [j, j+1)·2W/N,
+    /// y ∈ W − [i+1, i)·2W/N).
+    #[inline]
+    pub fn pixel_corner(&self, i: usize, j: usize) -> ([f64; 2], f64) {
+        let h = 2.0 * self.half_width / self.resolution as f64;
+        (
+            [
+                -self.half_width + j as f64 * h,
+                self.half_width - (i + 1) as f64 * h,
+            ],
+            h,
+        )
+    }
+
+    /// The pixel (i, j) holding (x, y), if inside the window.
+    #[inline]
+    pub fn pixel_of(&self, x: f64, y: f64) -> Option<(usize, usize)> {
+        let n = self.resolution as f64;
+        let h = 2.0 * self.half_width / n;
+        let (u, v) = ((x + self.half_width) / h, (self.half_width - y) / h);
+        if (0.0..n).contains(&u) && (0.0..n).contains(&v) {
+            Some((v as usize, u as usize))
+        } else {
+            None
+        }
+    }
+}
+
+/// A rendered image: per channel, per pixel, the estimate and its standard
+/// error (row-major, channel-major: `mean[(c·N + i)·N + j]`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Image {
+    pub resolution: usize,
+    pub channels: usize,
+    pub mean: Vec<f64>,
+    pub stderr: Vec<f64>,
+}
+
+impl Image {
+    pub fn zeros(resolution: usize, channels: usize) -> Self {
+        let n = resolution * resolution * channels;
+        Image {
+            resolution,
+            channels,
+            mean: vec![0.0; n],
+            stderr: vec![0.0; n],
+        }
+    }
+
+    /// Index of pixel (i, j) of channel c.
+    #[inline]
+    pub fn index(&self, c: usize, i: usize, j: usize) -> usize {
+        (c * self.resolution + i) * self.resolution + j
+    }
+}
+
+/// Estimator settings.
+#[derive(Clone, Debug)]
+pub struct Settings {
+    pub spp: u32,
+    pub sampling: Sampling,
+    pub seed: u64,
+    pub observable: Observable,
+}
+
+/// The radial importance sampler of one pixel: the basis profile at
+/// (α_s, ρ_s), p(x) = Σ A_k x^n e^{−B_k x} at unit density (x = ρr), as two
+/// mixtures (single: n = 0, multiple: n = 1).
+struct RadialSampler {
+    parts: [ExpMixture; 2],
+    rho: f64,
+}
+
+/// The arc of the circle of radius r around x_e (at distance `dist` from
+/// the disk's centre) that lies inside the disk of radius `radius`: its
+/// half-angle θ ∈ [0, π] (the arc is centred on the direction to the centre).
+#[inline]
+fn arc_half_angle(dist: f64, r: f64, radius: f64) -> f64 {
+    if r <= 0.0 {
+        return if dist <= radius { PI } else { 0.0 };
+    }
+    if dist <= 0.0 {
+        return if r <= radius { PI } else { 0.0 };
+    }
+    let c = (dist * dist + r * r - radius * radius) / (2.0 * dist * r);
+    if c <= -1.0 {
+        PI
+    } else if c >= 1.0 {
+        0.0
+    } else {
+        c.acos()
+    }
+}
+
+impl RadialSampler {
+    fn new(sv: &SvBssrdf, alpha: f64, rho: f64) -> Self {
+        RadialSampler {
+            parts: sv.basis().mixtures(alpha.max(IS_ALBEDO_FLOOR)),
+            rho,
+        }
+    }
+
+    /// (∫_x^∞ p, p(x)) at unit density, sharing each component's exponential.
+    #[inline]
+    fn tail_density(&self, x: f64) -> (f64, f64) {
+        let (mut tail, mut p) = (0.0, 0.0);
+        for m in &self.parts {
+            let n1 = m.power == 1;
+            for k in 0..m.a.len() {
+                let bx = m.b[k] * x;
+                let e = (-bx).exp();
+                let energy = m.component_energy(k);
+                if n1 {
+                    tail += energy * e * (1.0 + bx);
+                    p += m.a[k] * x * e;
+                } else {
+                    tail += energy * e;
+                    p += m.a[k] * e;
+                }
+            }
+        }
+        (tail, p)
+    }
+
+    #[inline]
+    fn tail(&self, x: f64) -> f64 {
+        self.tail_density(x).0
+    }
+
+    #[inline]
+    fn density(&self, x: f64) -> f64 {
+        self.tail_density(x).1
+    }
+
+    /// The r-interval [a, b] (MFP) from which the disk is reachable, and the
+    /// profile mass on it (unit-density integral).
+    #[inline]
+    fn window(&self, dist: f64, radius: f64) -> (f64, f64, f64) {
+        let (a, b) = ((dist - radius).max(0.0), dist + radius);
+        (a, b, self.tail(a * self.rho) - self.tail(b * self.rho))
+    }
+
+    /// r ∈ [a, b] from the profile truncated to it: solves
+    /// ln tail(ρr) = ln(tail(ρa) − u·mass) by Newton on the logarithm of the
+    /// closed-form tail (nearly linear: the tail is a sum of exponentials),
+    /// safeguarded by bisection, to 1e-12 relative; typically 3–4 steps.
+    fn sample(&self, u: f64, (a, b, mass): (f64, f64, f64)) -> f64 {
+        let (mut lo, mut hi) = (a * self.rho, b * self.rho);
+        let (t_lo, p_lo) = self.tail_density(lo);
+        let target = (t_lo - u * mass).max(f64::MIN_POSITIVE);
+        let ln_target = target.ln();
+        // First guess: the tail as one exponential of rate p/T at lo.
+        let beta = (p_lo / t_lo).max(1e-3);
+        let mut x = (lo + (t_lo / target).ln() / beta).clamp(lo, hi);
+        for _it in 0..60 {
+            let (t, p) = self.tail_density(x);
+            let g = t.max(f64::MIN_POSITIVE).ln() - ln_target; // decreasing in x
+            if g > 0.0 {
+                lo = x;
+            } else {
+                hi = x;
+            }
+            // d ln T/dx = −p/T.
+            let step = g * t / p.max(f64::MIN_POSITIVE);
+            if step.abs() <= 1e-12 * (1.0 + x) {
+                x = (x + step).clamp(lo, hi);
+                break;
+            }
+            x = if x + step > lo && x + step < hi {
+                x + step
+            } else {
+                0.5 * (lo + hi)
+            };
+        }
+        x / self.rho
+    }
+
+    /// Area pdf (1/MFP²) of x_i at distance r from x_e, arc half-angle θ.
+    #[inline]
+    fn area_pdf(&self, r: f64, theta: f64, (a, b, mass): (f64, f64, f64)) -> f64 {
+        if !(r >= a && r <= b) || theta <= 0.0 || mass <= 0.0 {
+            return 0.0;
+        }
+        let r = r.max(R_MIN);
+        self.rho * self.density(r * self.rho) / mass / (2.0 * theta * r)
+    }
+}
+
+/// T(1)/(η²·2π∫₀¹T(μ)μ dμ) (1/sr): normal radiance per unit exitance under
+/// internal isotropy (module docs); 1/π at η = 1.
+pub fn normal_radiance_factor(eta: f64) -> f64 {
+    let inv = 1.0 / eta;
+    let n = 4000;
+    let integral: f64 = (0..n)
+        .map(|k| {
+            let mu = (k as f64 + 0.5) / n as f64;
+            (1.0 - fresnel_dielectric(mu, inv)) * mu
+        })
+        .sum::<f64>()
+        / n as f64;
+    (1.0 - fresnel_dielectric(1.0, inv)) / (eta * eta * 2.0 * PI * integral)
+}
+
+/// Renders `sv` over `view` (module docs). Deterministic for any thread count.
+pub fn render(sv: &SvBssrdf, view: &View, settings: &Settings) -> Image {
+    let n = view.resolution;
+    let channels = sv.channels();
+    let scale = view.irradiance
+        * match settings.observable {
+            Observable::Exitance => 1.0,
+            Observable::Radiance => normal_radiance_factor(sv.basis().eta),
+        };
+    let pixels: Vec<Vec<(f64, f64)>> = (0..n * n)
+        .into_par_iter()
+        .map_init(Scratch::default, |scratch, p| {
+            pixel(sv, view, settings, p, scratch)
+                .into_iter()
+                .map(|(m, e)| (m * scale, e * scale))
+                .collect()
+        })
+        .collect();
+    let mut img = Image::zeros(n, channels);
+    for (p, values) in pixels.iter().enumerate() {
+        for (c, (m, e)) in values.iter().enumerate() {
+            let k = img.index(c, p / n, p % n);
+            img.mean[k] = *m;
+            img.stderr[k] = *e;
+        }
+    }
+    img
+}
+
+/// Per-group running sums of the sample values: (n, Σv, Σv²) per channel.
+#[derive(Clone, Copy, Default)]
+struct Group {
+    n: f64,
+    sum: [f64; 3],
+    sq: [f64; 3],
+}
+
+/// The estimate and standard error of pixel `p` per channel (unit irradiance).
+fn pixel(
+    sv: &SvBssrdf,
+    view: &View,
+    settings: &Settings,
+    p: usize,
+    scratch: &mut Scratch,
+) -> Vec<(f64, f64)> {
+    let n = view.resolution;
+    let channels = sv.channels();
+    let (corner, h) = view.pixel_corner(p / n, p % n);
+    let centre = [corner[0] + 0.5 * h, corner[1] + 0.5 * h];
+    let needs_is = settings.sampling != Sampling::Uniform;
+    let sampler = needs_is.then(|| {
+        let alpha = (0..channels)
+            .map(|c| sv.albedo_at(c, centre[0], centre[1]))
+            .sum::<f64>()
+            / channels as f64;
+        RadialSampler::new(sv, alpha, sv.density_at(centre[0], centre[1]))
+    });
+    let radius = view.light_radius;
+    let p_uniform = 1.0 / (PI * radius * radius);
+    let spp = settings.spp as u64;
+    let (n_u, n_i) = match settings.sampling {
+        Sampling::Uniform => (spp as f64, 0.0),
+        Sampling::Importance => (0.0, spp as f64),
+        Sampling::Mis => (spp.div_ceil(2) as f64, (spp / 2) as f64),
+    };
+    let mut groups = [Group::default(); 2];
+    for j in 0..spp {
+        let mut rng = PathRng::new(settings.seed, p as u64 * spp + j);
+        let xe = [corner[0] + h * rng.uniform(), corner[1] + h * rng.uniform()];
+        let u = [rng.uniform(), rng.uniform(), rng.uniform()];
+        let dist = xe[0].hypot(xe[1]);
+        let window = sampler.as_ref().map(|s| s.window(dist, radius));
+        let use_is = match settings.sampling {
+            Sampling::Uniform => false,
+            Sampling::Importance => true,
+            Sampling::Mis => j % 2 == 1,
+        };
+        let xi = match (&sampler, window, use_is) {
+            (Some(s), Some(w), true) => {
+                // r from the truncated profile, φ uniform on the arc inside the disk.
+                let r = s.sample(u[0], w);
+                let theta = arc_half_angle(dist, r, radius);
+                let phi = (-xe[1]).atan2(-xe[0]) + theta * (2.0 * u[1] - 1.0);
+                [xe[0] + r * phi.cos(), xe[1] + r * phi.sin()]
+            }
+            _ => {
+                let d = sample_disk_concentric([u[0], u[1]]);
+                [radius * d[0], radius * d[1]]
+            }
+        };
+        let inside = xi[0] * xi[0] + xi[1] * xi[1] <= radius * radius;
+        let r = ((xe[0] - xi[0]).powi(2) + (xe[1] - xi[1]).powi(2)).sqrt();
+        let pu = if inside { p_uniform } else { 0.0 };
+        let pi = match (&sampler, window) {
+            (Some(s), Some(w)) => s.area_pdf(r, arc_half_angle(dist, r, radius), w),
+            _ => 0.0,
+        };
+        let n_s = if use_is { n_i } else { n_u };
+        let denom = n_u * pu + n_i * pi;
+        let g = &mut groups[usize::from(use_is)];
+        g.n += 1.0;
+        if !inside || denom <= 0.0 {
+            continue;
+        }
+        for c in 0..channels {
+            let v = n_s * sv.eval(c, xi, xe, scratch) / denom;
+            g.sum[c] += v;
+            g.sq[c] += v * v;
+        }
+    }
+    (0..channels)
+        .map(|c| {
+            let (mut mean, mut var) = (0.0, 0.0);
+            for g in groups.iter().filter(|g| g.n > 0.0) {
+                let m = g.sum[c] / g.n;
+                mean += m;
+                if g.n > 1.0 {
+                    var += ((g.sq[c] - g.n * m * m) / (g.n - 1.0)).max(0.0) / g.n;
+                }
+            }
+            (mean, var.sqrt())
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pixel_conventions() {
+        let v = View {
+            light_radius: 1.0,
+            irradiance: 1.0,
+            resolution: 4,
+            half_width: 2.0,
+        };
+        assert_eq!(v.pixel_corner(0, 0), ([-2.0, 1.0], 1.0));
+        assert_eq!(v.pixel_of(-1.9, 1.9), Some((0, 0)));
+        assert_eq!(v.pixel_of(1.9, -1.9), Some((3, 3)));
+        assert_eq!(v.pixel_of(2.0, 0.0), None);
+        assert_eq!(v.pixel_of(f64::NAN, 0.0), None);
+        for i in 0..4 {
+            for j in 0..4 {
+                let (c, h) = v.pixel_corner(i, j);
+                assert_eq!(v.pixel_of(c[0] + 0.5 * h, c[1] + 0.5 * h), Some((i, j)));
+            }
+        }
+    }
+
+    #[test]
+    fn radiance_factor_is_lambertian_without_a_boundary() {
+        assert!((normal_radiance_factor(1.0) - 1.0 / PI).abs() < 1e-9);
+        let f = normal_radiance_factor(1.5);
+        assert!(f > 0.0 && f.is_finite());
+    }
+}
+

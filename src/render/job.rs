@@ -1,0 +1,492 @@
+//! `svkernel render`: a scene through every requested method and the
+//! reference, with timings, images and a JSON sidecar.
+//!
+//! A scene with a `density_sweep` is rendered once per density (a *pass*
+//! each, tagged `rho<ρ>`); otherwise there is one pass with the scene's
+//! density map (or ρ = 1).
+//!
+//! # Outputs (in `--out DIR`, all atomic)
+//! * `<pass>/<method>.exr` — channels Y (or R, G, B) and stderr.*;
+//! * `<pass>/<method>.png` — tone-mapped preview ([`super::output`]), and
+//!   `<pass>/<method>_diff.png` — signed difference to the reference;
+//! * `<pass>/<method>_mean.npy`, `<pass>/<method>_stderr.npy` — `(N, N, C)`;
+//! * `<pass>/reference.tally.json` — the mergeable reference tally;
+//! * `<pass>/row.png` — reference | each method (in render order), with the
+//!   signed differences to the reference below (blue −, red +, ±25 % of
+//!   the white point);
+//! * `render.json` — scene, settings, per-method timings and errors
+//!   against the reference, provenance.
+
+use super::estimator::{self, Image, Sampling, Settings, View};
+use super::output;
+use super::reference::{REFERENCE_FORMAT, REFERENCE_VERSION, Reference, ReferenceTally};
+use super::scene::{LightKind, Scene};
+use super::svbssrdf::{BasisTable, Density, Method, SvBssrdf, Variant};
+use crate::error::{Error, Result};
+use crate::forward::runner::{RunOptions, Shard, chunk_range, run};
+use crate::metamodel::basis::BasisModel;
+use crate::metamodel::meta::MetaModelFile;
+use crate::provenance::Provenance;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+/// One thing to render.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Target {
+    Reference,
+    Model(Method),
+}
+
+impl Target {
+    pub fn name(self) -> &'static str {
+        match self {
+            Target::Reference => "reference",
+            Target::Model(m) => m.name(),
+        }
+    }
+
+    pub fn parse(s: &str) -> Result<Target> {
+        if s == "reference" {
+            Ok(Target::Reference)
+        } else {
+            Method::parse(s).map(Target::Model)
+        }
+    }
+}
+
+/// How to render (the CLI's flags; `None` = the scene's value).
+#[derive(Clone, Debug)]
+pub struct RenderOptions {
+    /// Targets; empty = the scene's methods plus the reference.
+    pub targets: Vec<Target>,
+    pub spp: Option<u32>,
+    pub sampling: Sampling,
+    pub variant: Variant,
+    pub seed: u64,
+    pub reference_paths: Option<u64>,
+    /// Collimated-incidence basis, diffuse-incidence basis, meta-model.
+    pub basis: PathBuf,
+    pub basis_diffuse: PathBuf,
+    pub meta: PathBuf,
+    pub out: PathBuf,
+    /// Reference: only this shard (the images are then partial).
+    pub shard: Option<Shard>,
+    /// Reference: checkpointing and progress.
+    pub run: RunOptions,
+    /// Use these merged reference tallies (one per pass, in pass order)
+    /// instead of simulating.
+    pub reference_tallies: Vec<PathBuf>,
+}
+
+/// A stored reference tally (mergeable; `svkernel merge`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ReferenceDoc {
+    pub format: String,
+    pub version: u32,
+    pub key: serde_json::Value,
+    /// Chunk ranges this tally covers.
+    pub chunks: Vec<(u64, u64)>,
+    pub wall_s: f64,
+    pub tally: ReferenceTally,
+    pub provenance: Provenance,
+}
+
+/// One rendered image and what it cost.
+#[derive(Clone, Debug)]
+pub struct Rendered {
+    pub target: Target,
+    pub image: Image,
+    /// Wall time of the render itself (set-up such as pyramids included).
+    pub wall_s: f64,
+    /// Set-up part of `wall_s` (pyramid builds).
+    pub setup_s: f64,
+}
+
+/// The images of one pass.
+#[derive(Clone, Debug)]
+pub struct Pass {
+    /// "" for a single pass, else `rho<ρ>`.
+    pub tag: String,
+    pub density: Option<f64>,
+    pub rendered: Vec<Rendered>,
+    /// Reference events per second (scatterings), if simulated here.
+    pub reference_events_per_s: Option<f64>,
+}
+
+/// Errors of a method image against the reference (issue 7 refines them).
+#[derive(Clone, Debug, Serialize)]
+pub struct Metrics {
+    /// √(max(0, Σ(m − r)² − Σ(σ_m² + σ_r²))/Σ r²): relative RMSE with both
+    /// images' own noise subtracted.
+    pub rel_rmse: f64,
+    /// Σ(m − r)/Σ r.
+    pub rel_bias: f64,
+}
+
+/// Relative RMSE and bias of `m` against `r` over all pixels and channels.
+pub fn metrics(m: &Image, r: &Image) -> Metrics {
+    let (mut se, mut noise, mut norm, mut diff, mut sum) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for k in 0..r.mean.len() {
+        let d = m.mean[k] - r.mean[k];
+        se += d * d;
+        noise += m.stderr[k].powi(2) + r.stderr[k].powi(2);
+        norm += r.mean[k] * r.mean[k];
+        diff += d;
+        sum += r.mean[k];
+    }
+    Metrics {
+        rel_rmse: ((se - noise).max(0.0) / norm).sqrt(),
+        rel_bias: diff / sum,
+    }
+}
+
+/// A content hash of the scene file (FNV-1a, 64 bits, hex): identifies a
+/// reference simulation for checkpoints and merges.
+pub fn scene_hash(scene: &Scene) -> Result<String> {
+    let bytes = std::fs::read(&scene.path).map_err(|e| Error::io(&scene.path, e))?;
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for b in bytes {
+        h = (h ^ b as u64).wrapping_mul(0x0100_0000_01b3);
+    }
+    Ok(format!("{h:016x}"))
+}
+
+/// The passes of a scene: (tag, constant density or None for the map).
+fn passes(scene: &Scene) -> Vec<(String, Option<f64>)> {
+    if scene.density_sweep.is_empty() {
+        vec![(String::new(), None)]
+    } else {
+        scene
+            .density_sweep
+            .iter()
+            .map(|r| (format!("rho{r}"), Some(*r)))
+            .collect()
+    }
+}
+
+/// Renders every pass of `scene` (module docs). Progress lines go to stderr
+/// when `opts.run.progress` is set.
+pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
+    let targets = if opts.targets.is_empty() {
+        let mut t: Vec<Target> = scene
+            .methods
+            .iter()
+            .map(|m| Target::parse(m))
+            .collect::<Result<_>>()?;
+        t.insert(0, Target::Reference);
+        t
+    } else {
+        opts.targets.clone()
+    };
+    let needs_model = targets.iter().any(|t| matches!(t, Target::Model(_)));
+    let basis = if needs_model {
+        let path = match scene.light {
+            LightKind::Collimated => &opts.basis,
+            LightKind::Diffuse => &opts.basis_diffuse,
+        };
+        let model = BasisModel::load(path)?;
+        if (model.eta - scene.eta).abs() > 1e-9 || (model.g - scene.g).abs() > 1e-9 {
+            return Err(Error::format(
+                path,
+                "eta/g",
+                format!(
+                    "basis is for η = {}, g = {} but the scene {} has η = {}, g = {}",
+                    model.eta,
+                    model.g,
+                    scene.path.display(),
+                    scene.eta,
+                    scene.g
+                ),
+            ));
+        }
+        Some(Arc::new(BasisTable::new(&model)))
+    } else {
+        None
+    };
+    let meta = if targets.contains(&Target::Model(Method::Learned)) {
+        Some(Arc::new(MetaModelFile::load(&opts.meta)?))
+    } else {
+        None
+    };
+    let view = View {
+        light_radius: scene.light_radius,
+        irradiance: scene.irradiance,
+        resolution: scene.resolution,
+        half_width: scene.half_width,
+    };
+    let settings = Settings {
+        spp: opts.spp.unwrap_or(scene.samples),
+        sampling: opts.sampling,
+        seed: opts.seed,
+        observable: scene.observable.clone(),
+    };
+    let hash = scene_hash(scene)?;
+    let mut out = Vec::new();
+    for (pass_index, (tag, rho)) in passes(scene).into_iter().enumerate() {
+        let density_map = if rho.is_some() {
+            None
+        } else {
+            scene.density.as_ref()
+        };
+        let constant = rho.unwrap_or(1.0);
+        let mut rendered = Vec::new();
+        let mut events_per_s = None;
+        for &target in &targets {
+            let t0 = Instant::now();
+            match target {
+                Target::Reference => {
+                    let paths = opts.reference_paths.unwrap_or(scene.reference_paths);
+                    let reference = Reference::new(
+                        scene.eta,
+                        scene.g,
+                        &scene.albedo,
+                        density_map,
+                        constant,
+                        &scene.light,
+                        view,
+                        scene.observable.clone(),
+                        opts.seed,
+                        paths,
+                    )?;
+                    let key = reference.key(&format!("{hash}/{tag}"));
+                    let (tally, wall_s) = match opts.reference_tallies.get(pass_index) {
+                        Some(path) => {
+                            let doc: ReferenceDoc = crate::io::read_json(path)?;
+                            crate::io::check_header(
+                                path,
+                                (&doc.format, doc.version),
+                                (REFERENCE_FORMAT, REFERENCE_VERSION),
+                            )?;
+                            if doc.key != key {
+                                return Err(Error::format(
+                                    path,
+                                    "key",
+                                    "tally belongs to a different scene, pass or setting",
+                                ));
+                            }
+                            (doc.tally, doc.wall_s)
+                        }
+                        None => {
+                            let range = chunk_range(paths, opts.shard);
+                            let mut run_opts = opts.run.clone();
+                            run_opts.checkpoint = run_opts
+                                .checkpoint
+                                .map(|p| p.with_extension(format!("{}.ckpt", tag_or(&tag))));
+                            let r = run(
+                                &key,
+                                range,
+                                reference.empty(),
+                                |c| reference.chunk(c),
+                                &run_opts,
+                            )?;
+                            events_per_s = Some(r.tally.events as f64 / r.wall_s.max(1e-9));
+                            let doc = ReferenceDoc {
+                                format: REFERENCE_FORMAT.into(),
+                                version: REFERENCE_VERSION,
+                                key: key.clone(),
+                                chunks: vec![range],
+                                wall_s: r.wall_s,
+                                tally: r.tally.clone(),
+                                provenance: Provenance::current(),
+                            };
+                            let dir = opts.out.join(tag_or(&tag));
+                            crate::io::write_json_compact_atomic(
+                                &dir.join("reference.tally.json"),
+                                &doc,
+                            )?;
+                            if let Some(ck) = &run_opts.checkpoint {
+                                let _ = std::fs::remove_file(ck);
+                            }
+                            (r.tally, r.wall_s)
+                        }
+                    };
+                    rendered.push(Rendered {
+                        target,
+                        image: reference.image(&tally, scene.irradiance),
+                        wall_s,
+                        setup_s: 0.0,
+                    });
+                }
+                Target::Model(method) => {
+                    let density = match density_map {
+                        Some(m) => Density::Map(m.clone()),
+                        None => Density::Constant(constant),
+                    };
+                    let sv = SvBssrdf::new(
+                        method,
+                        opts.variant,
+                        basis.clone().expect("loaded for model targets"),
+                        meta.clone(),
+                        scene.albedo.clone(),
+                        density,
+                    )?;
+                    let setup_s = t0.elapsed().as_secs_f64();
+                    let image = estimator::render(&sv, &view, &settings);
+                    rendered.push(Rendered {
+                        target,
+                        image,
+                        wall_s: t0.elapsed().as_secs_f64(),
+                        setup_s,
+                    });
+                }
+            }
+            if opts.run.progress {
+                let r = rendered.last().expect("just pushed");
+                eprintln!(
+                    "  {} {:<10} {:>8.2} s",
+                    scene.name,
+                    target.name(),
+                    r.wall_s
+                );
+            }
+        }
+        out.push(Pass {
+            tag,
+            density: rho,
+            rendered,
+            reference_events_per_s: events_per_s,
+        });
+    }
+    Ok(out)
+}
+
+/// The directory name of a pass ("main" for the single pass).
+pub fn tag_or(tag: &str) -> &str {
+    if tag.is_empty() { "main" } else { tag }
+}
+
+/// Writes every image and the sidecar `render.json`; returns the sidecar.
+pub fn write_outputs(
+    scene: &Scene,
+    opts: &RenderOptions,
+    passes: &[Pass],
+) -> Result<serde_json::Value> {
+    let mut pass_docs = Vec::new();
+    for pass in passes {
+        let dir = opts.out.join(tag_or(&pass.tag));
+        let reference = pass
+            .rendered
+            .iter()
+            .find(|r| r.target == Target::Reference)
+            .map(|r| &r.image);
+        let white = output::white_point(reference.unwrap_or(&pass.rendered[0].image));
+        let mut methods = Vec::new();
+        for r in &pass.rendered {
+            let name = r.target.name();
+            output::write_exr(&dir.join(format!("{name}.exr")), &r.image, name)?;
+            output::write_png(&dir.join(format!("{name}.png")), &r.image, white)?;
+            output::write_npy(
+                &dir.join(format!("{name}_mean.npy")),
+                &dir.join(format!("{name}_stderr.npy")),
+                &r.image,
+            )?;
+            let m = match (reference, r.target) {
+                (Some(reference), Target::Model(_)) => {
+                    output::write_diff_png(
+                        &dir.join(format!("{name}_diff.png")),
+                        &r.image,
+                        reference,
+                        0.25 * white,
+                    )?;
+                    Some(metrics(&r.image, reference))
+                }
+                _ => None,
+            };
+            methods.push(serde_json::json!({
+                "method": name,
+                "wall_s": r.wall_s,
+                "setup_s": r.setup_s,
+                "metrics": m,
+                "mean": r.image.mean.iter().sum::<f64>() / r.image.mean.len() as f64,
+            }));
+        }
+        if let Some(reference) = reference {
+            let mut row = vec![reference];
+            row.extend(
+                pass.rendered
+                    .iter()
+                    .filter(|r| r.target != Target::Reference)
+                    .map(|r| &r.image),
+            );
+            output::write_row_png(&dir.join("row.png"), &row, white, 0.25 * white)?;
+        }
+        pass_docs.push(serde_json::json!({
+            "tag": tag_or(&pass.tag),
+            "density": pass.density,
+            "white_point": white,
+            "reference_events_per_s": pass.reference_events_per_s,
+            "methods": methods,
+        }));
+    }
+    let doc = serde_json::json!({
+        "format": "svkernel.render",
+        "version": 1,
+        "scene": scene.path,
+        "scene_name": scene.name,
+        "scene_hash": scene_hash(scene)?,
+        "resolution": scene.resolution,
+        "half_width": scene.half_width,
+        "observable": format!("{:?}", scene.observable),
+        "spp": opts.spp.unwrap_or(scene.samples),
+        "sampling": opts.sampling.name(),
+        "variant": opts.variant.tag(),
+        "seed": opts.seed,
+        "reference_paths": opts.reference_paths.unwrap_or(scene.reference_paths),
+        "shard": opts.shard.map(|s| format!("{}/{}", s.index, s.count)),
+        "tone_map": "sRGB OETF of clamp(v / white_point, 0, 1); white_point = 99.5th percentile of the reference",
+        "passes": pass_docs,
+        "provenance": Provenance::current(),
+    });
+    crate::io::write_json_atomic(&opts.out.join("render.json"), &doc)?;
+    Ok(doc)
+}
+
+/// Merges reference tally documents of one simulation (shards) in chunk
+/// order; errors name the file.
+pub fn merge_reference(inputs: &[PathBuf], out: &Path) -> Result<()> {
+    let mut docs: Vec<(PathBuf, ReferenceDoc)> = Vec::new();
+    for p in inputs {
+        let doc: ReferenceDoc = crate::io::read_json(p)?;
+        crate::io::check_header(
+            p,
+            (&doc.format, doc.version),
+            (REFERENCE_FORMAT, REFERENCE_VERSION),
+        )?;
+        if let Some((_, first)) = docs.first()
+            && first.key != doc.key
+        {
+            return Err(Error::Merge {
+                path: p.clone(),
+                msg: "a different reference simulation (key differs)".into(),
+            });
+        }
+        docs.push((p.clone(), doc));
+    }
+    let chunks = crate::forward::runner::join_chunks(
+        docs.iter()
+            .map(|(p, d)| (p.as_path(), d.chunks.as_slice())),
+    )?;
+    docs.sort_by_key(|(_, d)| d.chunks.first().copied());
+    let (_, first) = docs.first().ok_or_else(|| Error::Merge {
+        path: out.to_path_buf(),
+        msg: "no inputs".into(),
+    })?;
+    let mut total = ReferenceTally::new(first.tally.resolution, first.tally.channels, !first.tally.radiance.is_empty());
+    let mut wall_s = 0.0;
+    for (_, d) in &docs {
+        crate::forward::runner::Tally::merge(&mut total, &d.tally);
+        wall_s += d.wall_s;
+    }
+    let doc = ReferenceDoc {
+        format: REFERENCE_FORMAT.into(),
+        version: REFERENCE_VERSION,
+        key: first.key.clone(),
+        chunks,
+        wall_s,
+        tally: total,
+        provenance: Provenance::current(),
+    };
+    crate::io::write_json_compact_atomic(out, &doc)
+}

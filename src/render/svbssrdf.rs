@@ -1,0 +1,741 @@
+//! The SV-BSSRDF S(x_i, x_e) of every method of design §4, evaluated from
+//! the basis profile ([`crate::metamodel::basis`]) and the aggregation
+//! kernels ([`crate::metamodel`]).
+//!
+//! # Units and what S is
+//! S(x_i, x_e) is the radiant exitance at x_e per unit power entering at
+//! x_i (1/MFP²), entry Fresnel loss included (the basis profiles are per
+//! incident power). For a homogeneous medium of albedo α and density ρ,
+//! S = R(r; α, ρ) = ρ²·R(ρr; α, 1): every length scales by 1/ρ, so the
+//! exitance picks up the area Jacobian ρ². R(r; α, 1) = α·R₁(r; 1) + Rₘ(r; α)
+//! with R₁(r; 1) = p₁(r)/(2πr) and Rₘ(r; α) = Σ_k A_k(α)/(2π)·e^{−B_k r}
+//! (the basis model's exitance mixture).
+//!
+//! # The methods
+//! | method | S |
+//! |---|---|
+//! | `point` | R(r; α_e, ρ_e) |
+//! | `factorized` | √(R(r; α_i, ρ_i)·R(r; α_e, ρ_e)) |
+//! | `line` | R(r; ᾱ, ρ̄) over the segment x_i → x_e |
+//! | `ellipse` | R(r; ᾱ, ρ̄) over the ellipse with foci x_i, x_e |
+//! | `manual`, `learned` | ρ̄²·[α₁·R₁(ρ̄r; 1) + α_i·α_e·Rₘ(ρ̄r; α_t)/α_t²] |
+//!
+//! Every average over a support (segment, ellipse, kernel) is density-scaled
+//! the same way: ᾱ = ∫ρα/∫ρ, ρ̄ = ∫ρ (normalised weights), the design's
+//! aggregation with r_eff = r·ρ̄. `line` samples the segment at spacing
+//! ≤ τ/2 (cost ∝ d/τ); `ellipse` takes the ellipse with foci x_i, x_e and
+//! semi-major axis a = d/2 + 1/ρ₀ (one mean free path beyond each focus,
+//! ρ₀ = (ρ_i + ρ_e)/2, the Sone et al. 2017 support), integrated texel row
+//! by texel row (exact in x from row prefix sums, midpoint in y; cost ∝ the
+//! ellipse's height in texels, ∝ d).
+//!
+//! `manual` and `learned` use the split form (design §4): α₁ = α_i (under
+//! collimated normal incidence the single-scattering vertex lies straight
+//! below x_i), α_t = Σ_k w_k (G_σk ∗ ρα)(μ_k)/Σ_k w_k (G_σk ∗ ρ)(μ_k) and
+//! ρ̄ = Σ_k w_k (G_σk ∗ ρ)(μ_k) from Gaussian pyramids ([`super::pyramid`]),
+//! with the kernel evaluated at (d, α₀ = (α_i + α_e)/2, ρ₀) and placed in the
+//! pair frame (t along x_i → x_e). The ratio α_iα_e/α_t² multiplies
+//! Rₘ(α_t)/α_t², which the basis stores as a bounded function
+//! (A_k/α² = exp(polynomial)), so nothing divides by α_t: S stays finite as
+//! albedos go to 0.
+//!
+//! # Variants ([`Variant`], for the experiments of the compare issue)
+//! * `plain`: α_t = Σ w_k (G ∗ α)(μ_k) (not density-scaled; ρ̄ as above);
+//! * `vertex_kernels`: α_i and α_e are aggregated under the first- and
+//!   last-vertex kernels instead of read at the points;
+//! * `two_pass`: the kernel is evaluated again at α₀ = α_t and ρ₀ = ρ̄, and
+//!   α_t, ρ̄ recomputed.
+//!
+//! # r → 0
+//! R₁ diverges like 1/r (integrable in area); S is evaluated at
+//! max(r, [`R_MIN`]) so that x_i = x_e gives a large finite value.
+
+use crate::error::{Error, Result};
+use crate::forward::maps::TexelMap;
+use crate::metamodel::basis::{BasisModel, ExpMixture, albedo_coordinate};
+use crate::metamodel::kernel::{Component, Gmm};
+use crate::metamodel::meta::MetaModelFile;
+use crate::pair::VertexClass;
+use crate::render::pyramid::GaussianPyramid;
+use std::f64::consts::PI;
+use std::sync::Arc;
+
+/// Smallest r (MFP) at which S is evaluated.
+pub const R_MIN: f64 = 1e-6;
+
+/// The methods of design §4's table (the reference is rendered separately).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Method {
+    Point,
+    Factorized,
+    Line,
+    Ellipse,
+    Manual,
+    Learned,
+}
+
+impl Method {
+    /// In the order of the report's image rows.
+    pub const ALL: [Method; 6] = [
+        Method::Point,
+        Method::Factorized,
+        Method::Line,
+        Method::Ellipse,
+        Method::Manual,
+        Method::Learned,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Method::Point => "point",
+            Method::Factorized => "factorized",
+            Method::Line => "line",
+            Method::Ellipse => "ellipse",
+            Method::Manual => "manual",
+            Method::Learned => "learned",
+        }
+    }
+
+    /// Parses a method name (`--method`, scene `methods`).
+    pub fn parse(s: &str) -> Result<Method> {
+        Method::ALL
+            .into_iter()
+            .find(|m| m.name() == s)
+            .ok_or_else(|| {
+                Error::param(
+                    "--method",
+                    s,
+                    "point, factorized, line, ellipse, manual, learned or reference",
+                )
+            })
+    }
+
+    /// True for the kernel (local/global) methods that need pyramids.
+    pub fn uses_kernel(self) -> bool {
+        matches!(self, Method::Manual | Method::Learned)
+    }
+}
+
+/// Options of the kernel methods (module docs).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub struct Variant {
+    pub plain: bool,
+    pub vertex_kernels: bool,
+    pub two_pass: bool,
+}
+
+impl Variant {
+    /// A short tag: "" for the default, else e.g. "+plain+2pass".
+    pub fn tag(&self) -> String {
+        let mut s = String::new();
+        if self.plain {
+            s += "+plain";
+        }
+        if self.vertex_kernels {
+            s += "+vertex";
+        }
+        if self.two_pass {
+            s += "+2pass";
+        }
+        s
+    }
+}
+
+/// Nodes of [`BasisTable`] in the albedo coordinate x = √(1 − α).
+const TABLE_NODES: usize = 1024;
+
+/// The basis model tabulated for fast evaluation: A_k/α² and B_k at
+/// [`TABLE_NODES`] equally spaced values of x = √(1 − α), linearly
+/// interpolated (measured max relative error of Rₘ against
+/// [`BasisModel::multi`] in the tests: < 1e-5), plus p₁ at α = 1.
+#[derive(Clone, Debug)]
+pub struct BasisTable {
+    k: usize,
+    /// Per node: K values of A_k/(2π α²) then K values of B_k.
+    nodes: Vec<f64>,
+    single: ExpMixture,
+    /// The model's η (for the radiance conversion).
+    pub eta: f64,
+}
+
+impl BasisTable {
+    pub fn new(model: &BasisModel) -> Self {
+        let k = model.components();
+        let mut nodes = Vec::with_capacity(TABLE_NODES * 2 * k);
+        for n in 0..TABLE_NODES {
+            let x = n as f64 / (TABLE_NODES - 1) as f64;
+            // α from x; at α = 0 use A/α² from a tiny α (the ratio is smooth).
+            let alpha = (1.0 - x * x).max(1e-150);
+            let m = model.multi(alpha);
+            nodes.extend(m.a.iter().map(|a| a / (alpha * alpha) / (2.0 * PI)));
+            nodes.extend(m.b.iter().copied());
+        }
+        BasisTable {
+            k,
+            nodes,
+            single: model.single.clone(),
+            eta: model.eta,
+        }
+    }
+
+    /// Index and weight of the interpolation at α.
+    #[inline]
+    fn locate(alpha: f64) -> (usize, f64) {
+        let u = albedo_coordinate(alpha) * (TABLE_NODES - 1) as f64;
+        let i = (u as usize).min(TABLE_NODES - 2);
+        (i, u - i as f64)
+    }
+
+    /// Rₘ(r; α)/α² at unit density (1/MFP²): bounded for every α ∈ [0, 1].
+    #[inline]
+    pub fn multi_over_alpha2(&self, r: f64, alpha: f64) -> f64 {
+        let (i, f) = Self::locate(alpha);
+        let k = self.k;
+        let n0 = &self.nodes[i * 2 * k..(i + 1) * 2 * k];
+        let n1 = &self.nodes[(i + 1) * 2 * k..(i + 2) * 2 * k];
+        let mut sum = 0.0;
+        for j in 0..k {
+            let a = n0[j] + f * (n1[j] - n0[j]);
+            let b = n0[k + j] + f * (n1[k + j] - n0[k + j]);
+            sum += a * (-b * r).exp();
+        }
+        sum
+    }
+
+    /// R₁(r; 1) = p₁(r)/(2πr) at unit density (1/MFP²), r ≥ [`R_MIN`].
+    #[inline]
+    pub fn single_exitance(&self, r: f64) -> f64 {
+        let r = r.max(R_MIN);
+        self.single.density(r) / (2.0 * PI * r)
+    }
+
+    /// The homogeneous exitance R(r; α, ρ) = ρ²[α R₁(ρr) + α² Rₘ(ρr; α)/α²].
+    #[inline]
+    pub fn exitance(&self, r: f64, alpha: f64, rho: f64) -> f64 {
+        let x = r.max(R_MIN) * rho;
+        rho * rho * (alpha * self.single_exitance(x) + alpha * alpha * self.multi_over_alpha2(x, alpha))
+    }
+
+    /// The radial density of the homogeneous profile at (α, ρ) as mixtures
+    /// (single: n = 0, multiple: n = 1) at unit density, for importance
+    /// sampling ([`super::estimator`]); lengths are divided by ρ by the caller.
+    pub fn mixtures(&self, alpha: f64) -> [ExpMixture; 2] {
+        let (i, f) = Self::locate(alpha);
+        let k = self.k;
+        let n0 = &self.nodes[i * 2 * k..(i + 1) * 2 * k];
+        let n1 = &self.nodes[(i + 1) * 2 * k..(i + 2) * 2 * k];
+        let lerp = |j: usize| n0[j] + f * (n1[j] - n0[j]);
+        [
+            self.single.scaled(alpha),
+            ExpMixture {
+                a: (0..k).map(|j| lerp(j) * 2.0 * PI * alpha * alpha).collect(),
+                b: (0..k).map(|j| lerp(k + j)).collect(),
+                power: 1,
+            },
+        ]
+    }
+}
+
+/// The density of a scene: constant or a map (with its pyramid when a
+/// kernel method needs it).
+#[derive(Clone, Debug)]
+pub enum Density {
+    Constant(f64),
+    Map(TexelMap),
+}
+
+impl Density {
+    #[inline]
+    pub fn at(&self, x: f64, y: f64) -> f64 {
+        match self {
+            Density::Constant(r) => *r,
+            Density::Map(m) => m.at(x, y),
+        }
+    }
+}
+
+/// Where the kernel methods read their aggregates.
+#[derive(Debug)]
+struct Pyramids {
+    /// G ∗ α per channel (constant density, or the `plain` variant).
+    alpha: Vec<GaussianPyramid>,
+    /// G ∗ ρα per channel and G ∗ ρ (density maps only).
+    rho_alpha: Vec<GaussianPyramid>,
+    rho: Option<GaussianPyramid>,
+}
+
+/// Per-thread scratch space of [`SvBssrdf::eval`] (no allocation per call).
+#[derive(Clone, Debug, Default)]
+pub struct Scratch {
+    kernel: Gmm,
+}
+
+/// The material (albedo channels and density) and one method, ready to
+/// evaluate S(x_i, x_e) per channel.
+#[derive(Debug)]
+pub struct SvBssrdf {
+    pub method: Method,
+    pub variant: Variant,
+    basis: Arc<BasisTable>,
+    meta: Option<Arc<MetaModelFile>>,
+    albedo: Vec<TexelMap>,
+    density: Density,
+    pyramids: Option<Pyramids>,
+    rows: Option<Rows>,
+}
+
+impl SvBssrdf {
+    /// Prepares `method` on the material; builds only the pyramids the
+    /// method and variant need. `meta` is required by `learned`.
+    pub fn new(
+        method: Method,
+        variant: Variant,
+        basis: Arc<BasisTable>,
+        meta: Option<Arc<MetaModelFile>>,
+        albedo: Vec<TexelMap>,
+        density: Density,
+    ) -> Result<Self> {
+        if method == Method::Learned && meta.is_none() {
+            return Err(Error::param(
+                "--model",
+                "(none)",
+                "a meta-model file for method learned",
+            ));
+        }
+        if let Density::Map(rho) = &density
+            && albedo.iter().any(|a| (a.nx, a.ny) != (rho.nx, rho.ny))
+        {
+            return Err(Error::param(
+                "density map shape",
+                format!("{}x{}", rho.nx, rho.ny),
+                "the albedo map's shape",
+            ));
+        }
+        let pyramids = if method.uses_kernel() {
+            let varying = matches!(density, Density::Map(_));
+            let alpha = if !varying || variant.plain {
+                albedo
+                    .iter()
+                    .map(GaussianPyramid::new)
+                    .collect::<Result<_>>()?
+            } else {
+                Vec::new()
+            };
+            let (rho_alpha, rho) = match &density {
+                Density::Map(rho) => (
+                    albedo
+                        .iter()
+                        .map(|a| {
+                            let v = a.values.iter().zip(&rho.values).map(|(a, r)| a * r);
+                            GaussianPyramid::new(&TexelMap::new(
+                                a.nx,
+                                a.ny,
+                                a.texel,
+                                v.collect(),
+                            )?)
+                        })
+                        .collect::<Result<_>>()?,
+                    Some(GaussianPyramid::new(rho)?),
+                ),
+                Density::Constant(_) => (Vec::new(), None),
+            };
+            Some(Pyramids {
+                alpha,
+                rho_alpha,
+                rho,
+            })
+        } else {
+            None
+        };
+        let rows = (method == Method::Ellipse).then(|| Rows {
+            rho_alpha: albedo
+                .iter()
+                .map(|a| {
+                    let mut m = a.clone();
+                    if let Density::Map(rho) = &density {
+                        for (v, r) in m.values.iter_mut().zip(&rho.values) {
+                            *v *= r;
+                        }
+                    }
+                    RowPrefix::new(m)
+                })
+                .collect(),
+            rho: match &density {
+                Density::Map(rho) => Some(RowPrefix::new(rho.clone())),
+                Density::Constant(_) => None,
+            },
+        });
+        Ok(SvBssrdf {
+            method,
+            variant,
+            basis,
+            meta,
+            albedo,
+            density,
+            pyramids,
+            rows,
+        })
+    }
+
+    /// Number of channels.
+    pub fn channels(&self) -> usize {
+        self.albedo.len()
+    }
+
+    /// The albedo of channel `c` at a point.
+    #[inline]
+    pub fn albedo_at(&self, c: usize, x: f64, y: f64) -> f64 {
+        self.albedo[c].at(x, y)
+    }
+
+    /// The density at a point.
+    #[inline]
+    pub fn density_at(&self, x: f64, y: f64) -> f64 {
+        self.density.at(x, y)
+    }
+
+    /// The basis table.
+    pub fn basis(&self) -> &BasisTable {
+        &self.basis
+    }
+
+    /// S(x_i, x_e) of channel `c` (1/MFP², module docs).
+    #[inline]
+    pub fn eval(&self, c: usize, xi: [f64; 2], xe: [f64; 2], scratch: &mut Scratch) -> f64 {
+        let (dx, dy) = (xe[0] - xi[0], xe[1] - xi[1]);
+        let d = (dx * dx + dy * dy).sqrt();
+        let (ai, ae) = (self.albedo_at(c, xi[0], xi[1]), self.albedo_at(c, xe[0], xe[1]));
+        let (ri, re) = (self.density_at(xi[0], xi[1]), self.density_at(xe[0], xe[1]));
+        let b = &*self.basis;
+        match self.method {
+            Method::Point => b.exitance(d, ae, re),
+            Method::Factorized => (b.exitance(d, ai, ri) * b.exitance(d, ae, re)).sqrt(),
+            Method::Line => {
+                let (a, r) = self.line_average(c, xi, xe, d);
+                b.exitance(d, a, r)
+            }
+            Method::Ellipse => {
+                let (a, r) = self.ellipse_average(c, xi, xe, d, 0.5 * (ri + re));
+                b.exitance(d, a, r)
+            }
+            Method::Manual | Method::Learned => {
+                self.eval_split(c, xi, [dx, dy], d, [ai, ae], 0.5 * (ri + re), scratch)
+            }
+        }
+    }
+
+    /// The split (local/global) form of `manual` and `learned`.
+    #[allow(clippy::too_many_arguments)]
+    #[inline]
+    fn eval_split(
+        &self,
+        c: usize,
+        xi: [f64; 2],
+        delta: [f64; 2],
+        d: f64,
+        [ai, ae]: [f64; 2],
+        rho0: f64,
+        scratch: &mut Scratch,
+    ) -> f64 {
+        let axis = if d > 0.0 {
+            [delta[0] / d, delta[1] / d]
+        } else {
+            [1.0, 0.0]
+        };
+        let frame = Frame { xi, axis };
+        self.kernel(VertexClass::All, d, 0.5 * (ai + ae), rho0, &mut scratch.kernel);
+        let (mut alpha_t, mut rho_bar) = self.aggregate(c, &frame, &scratch.kernel);
+        if self.variant.two_pass {
+            self.kernel(VertexClass::All, d, alpha_t, rho_bar, &mut scratch.kernel);
+            (alpha_t, rho_bar) = self.aggregate(c, &frame, &scratch.kernel);
+        }
+        let (mut li, mut le) = (ai, ae);
+        if self.variant.vertex_kernels {
+            let a0 = 0.5 * (ai + ae);
+            self.kernel(VertexClass::First, d, a0, rho0, &mut scratch.kernel);
+            li = self.aggregate(c, &frame, &scratch.kernel).0;
+            self.kernel(VertexClass::Last, d, a0, rho0, &mut scratch.kernel);
+            le = self.aggregate(c, &frame, &scratch.kernel).0;
+        }
+        let b = &*self.basis;
+        let x = d.max(R_MIN) * rho_bar;
+        rho_bar
+            * rho_bar
+            * (ai * b.single_exitance(x) + li * le * b.multi_over_alpha2(x, alpha_t))
+    }
+
+    /// The kernel of `class` at (d, α₀, ρ₀) in physical MFP, into `out`.
+    #[inline]
+    fn kernel(&self, class: VertexClass, d: f64, alpha0: f64, rho0: f64, out: &mut Gmm) {
+        match (self.method, &self.meta) {
+            (Method::Learned, Some(meta)) => match (class, &meta.first) {
+                (VertexClass::All, _) => {
+                    meta.all.eval_into(d, alpha0, rho0, out);
+                }
+                (VertexClass::Last, _) => {
+                    meta.last.eval_into(d, alpha0, rho0, out);
+                }
+                (VertexClass::First, Some(m)) => {
+                    m.eval_into(d, alpha0, rho0, out);
+                }
+                (VertexClass::First, None) => point_kernel(0.0, out),
+            },
+            _ => match class {
+                // The manual kernel (design §4) at the optical distance ρ₀d,
+                // lengths divided by ρ₀ (the density law).
+                VertexClass::All => manual_into(d * rho0, 1.0 / rho0, out),
+                VertexClass::First => point_kernel(0.0, out),
+                VertexClass::Last => point_kernel(d, out),
+            },
+        }
+    }
+
+    /// (α_t, ρ̄) of channel `c` under `kernel` placed in `frame`.
+    #[inline]
+    fn aggregate(&self, c: usize, frame: &Frame, kernel: &Gmm) -> (f64, f64) {
+        let p = self
+            .pyramids
+            .as_ref()
+            .expect("kernel methods build their pyramids");
+        let mut wsum = 0.0;
+        let (mut num, mut den, mut plain) = (0.0, 0.0, 0.0);
+        for comp in &kernel.components {
+            let mu = frame.place(comp);
+            wsum += comp.weight;
+            match (&self.density, &p.rho) {
+                (Density::Map(_), Some(rho)) => {
+                    den += comp.weight * rho.integrate(mu, comp.sigma);
+                    if self.variant.plain {
+                        plain += comp.weight * p.alpha[c].integrate(mu, comp.sigma);
+                    } else {
+                        num += comp.weight * p.rho_alpha[c].integrate(mu, comp.sigma);
+                    }
+                }
+                _ => plain += comp.weight * p.alpha[c].integrate(mu, comp.sigma),
+            }
+        }
+        match &self.density {
+            Density::Constant(r) => ((plain / wsum).clamp(0.0, 1.0), *r),
+            Density::Map(_) => {
+                let alpha_t = if self.variant.plain {
+                    plain / wsum
+                } else {
+                    num / den
+                };
+                (alpha_t.clamp(0.0, 1.0), den / wsum)
+            }
+        }
+    }
+
+    /// Density-weighted mean albedo and mean density along the segment.
+    fn line_average(&self, c: usize, xi: [f64; 2], xe: [f64; 2], d: f64) -> (f64, f64) {
+        let tau = self.albedo[c].texel;
+        let n = ((2.0 * d / tau).ceil() as usize).max(1);
+        let (mut ra, mut r) = (0.0, 0.0);
+        for k in 0..n {
+            let t = (k as f64 + 0.5) / n as f64;
+            let (x, y) = (xi[0] + t * (xe[0] - xi[0]), xi[1] + t * (xe[1] - xi[1]));
+            let rho = self.density_at(x, y);
+            ra += rho * self.albedo_at(c, x, y);
+            r += rho;
+        }
+        (ra / r, r / n as f64)
+    }
+
+    /// Density-weighted mean albedo and mean density over the ellipse with
+    /// foci x_i, x_e and semi-major axis a = d/2 + 1/ρ₀: texel rows crossed
+    /// by the ellipse, each chord integrated exactly in x from row prefix
+    /// sums ([`RowPrefix`]) at the row's (clipped) mid-line (midpoint rule
+    /// in y). Cost ∝ the ellipse's height in texels.
+    fn ellipse_average(
+        &self,
+        c: usize,
+        xi: [f64; 2],
+        xe: [f64; 2],
+        d: f64,
+        rho0: f64,
+    ) -> (f64, f64) {
+        let rows = self.rows.as_ref().expect("ellipse builds its row sums");
+        let a = 0.5 * d + 1.0 / rho0;
+        let b = (a * a - 0.25 * d * d).sqrt();
+        let centre = [0.5 * (xi[0] + xe[0]), 0.5 * (xi[1] + xe[1])];
+        let [ux, uy] = if d > 0.0 {
+            [(xe[0] - xi[0]) / d, (xe[1] - xi[1]) / d]
+        } else {
+            [1.0, 0.0]
+        };
+        // The ellipse as A X² + B X + C(Y) ≤ 0 with X = x − c_x, Y = y − c_y.
+        let (ia2, ib2) = (1.0 / (a * a), 1.0 / (b * b));
+        let qa = ux * ux * ia2 + uy * uy * ib2;
+        let qb = 2.0 * ux * uy * (ia2 - ib2);
+        let qc = uy * uy * ia2 + ux * ux * ib2;
+        let half_h = (a * a * uy * uy + b * b * ux * ux).sqrt();
+        let (ra, r) = (&rows.rho_alpha[c], &rows.rho);
+        let (mut num, mut den, mut area) = (0.0, 0.0, 0.0);
+        for (y, h, i) in ra.bands(centre[1] - half_h, centre[1] + half_h) {
+            let yy = y - centre[1];
+            let (bq, cq) = (qb * yy, qc * yy * yy - 1.0);
+            let disc = bq * bq - 4.0 * qa * cq;
+            if disc <= 0.0 {
+                continue;
+            }
+            let s = disc.sqrt();
+            let (x0, x1) = (
+                centre[0] + (-bq - s) / (2.0 * qa),
+                centre[0] + (-bq + s) / (2.0 * qa),
+            );
+            num += h * ra.integral(i, x0, x1);
+            den += h * r.as_ref().map_or(x1 - x0, |r| r.integral(i, x0, x1));
+            area += h * (x1 - x0);
+        }
+        if !(den > 0.0 && area > 0.0) {
+            let rho = self.density_at(centre[0], centre[1]);
+            return (self.albedo_at(c, centre[0], centre[1]), rho);
+        }
+        match (&self.density, r) {
+            (Density::Constant(rho), _) => (num / den, *rho),
+            _ => (num / den, den / area),
+        }
+    }
+}
+
+/// Row prefix sums of a texel map: P_i(j) = τ·Σ_{j' < j} v_ij', so that
+/// ∫ over [x0, x1] of row i (edge texels extended) is O(1).
+#[derive(Debug)]
+struct RowPrefix {
+    map: TexelMap,
+    prefix: Vec<f64>,
+}
+
+impl RowPrefix {
+    fn new(map: TexelMap) -> Self {
+        let (nx, tau) = (map.nx, map.texel);
+        let mut prefix = Vec::with_capacity(map.ny * (nx + 1));
+        for row in map.values.chunks(nx) {
+            let mut acc = 0.0;
+            prefix.push(0.0);
+            for v in row {
+                acc += tau * v;
+                prefix.push(acc);
+            }
+        }
+        RowPrefix { map, prefix }
+    }
+
+    /// ∫_{x_left}^{x} of row i (negative left of the texture).
+    #[inline]
+    fn cumulative(&self, i: usize, x: f64) -> f64 {
+        let m = &self.map;
+        let (nx, tau) = (m.nx, m.texel);
+        let left = -0.5 * nx as f64 * tau;
+        let row = &m.values[i * nx..(i + 1) * nx];
+        let p = &self.prefix[i * (nx + 1)..(i + 1) * (nx + 1)];
+        let u = (x - left) / tau;
+        if u <= 0.0 {
+            (x - left) * row[0]
+        } else if u >= nx as f64 {
+            p[nx] + (u - nx as f64) * tau * row[nx - 1]
+        } else {
+            let j = u as usize;
+            p[j] + (u - j as f64) * tau * row[j]
+        }
+    }
+
+    #[inline]
+    fn integral(&self, i: usize, x0: f64, x1: f64) -> f64 {
+        self.cumulative(i, x1) - self.cumulative(i, x0)
+    }
+
+    /// The texel-row bands crossing [y0, y1]: (mid-line y, height, row index),
+    /// rows beyond the texture mapped to the edge row.
+    fn bands(&self, y0: f64, y1: f64) -> impl Iterator<Item = (f64, f64, usize)> + '_ {
+        let (ny, tau) = (self.map.ny, self.map.texel);
+        let top = 0.5 * ny as f64 * tau;
+        // Row k (unclamped) covers y ∈ (top − (k+1)τ, top − kτ].
+        let k0 = ((top - y1) / tau).floor() as i64;
+        let k1 = ((top - y0) / tau).floor() as i64;
+        (k0..=k1).filter_map(move |k| {
+            let hi = (top - k as f64 * tau).min(y1);
+            let lo = (top - (k + 1) as f64 * tau).max(y0);
+            (hi > lo).then(|| (0.5 * (lo + hi), hi - lo, k.clamp(0, ny as i64 - 1) as usize))
+        })
+    }
+}
+
+/// Row sums for `ellipse`: of ρα per channel (α for a constant density) and
+/// of ρ (density maps only).
+#[derive(Debug)]
+struct Rows {
+    rho_alpha: Vec<RowPrefix>,
+    rho: Option<RowPrefix>,
+}
+
+/// The pair frame on the surface: origin x_i, unit axis toward x_e.
+struct Frame {
+    xi: [f64; 2],
+    axis: [f64; 2],
+}
+
+impl Frame {
+    /// The surface position of a component's centre (t along the axis, s to
+    /// its left).
+    #[inline]
+    fn place(&self, c: &Component) -> [f64; 2] {
+        let [ux, uy] = self.axis;
+        [
+            self.xi[0] + c.t * ux - c.s * uy,
+            self.xi[1] + c.t * uy + c.s * ux,
+        ]
+    }
+}
+
+/// A single narrow component at t (a point read through the pyramid's exact
+/// window).
+#[inline]
+fn point_kernel(t: f64, out: &mut Gmm) {
+    out.components.clear();
+    out.components.push(Component {
+        weight: 1.0,
+        t,
+        s: 0.0,
+        sigma: crate::metamodel::meta::DELTA_SIGMA,
+    });
+}
+
+/// [`crate::metamodel::kernel::manual_kernel`] at optical distance `d1`,
+/// lengths multiplied by `scale` (= 1/ρ), into `out` without allocating.
+#[inline]
+fn manual_into(d1: f64, scale: f64, out: &mut Gmm) {
+    out.components.clear();
+    for (weight, t, sigma) in [
+        (0.25, 0.0, 0.5),
+        (0.5, 0.5 * d1, 0.5 + 0.3 * d1),
+        (0.25, d1, 0.5),
+    ] {
+        out.components.push(Component {
+            weight,
+            t: t * scale,
+            s: 0.0,
+            sigma: sigma * scale,
+        });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::metamodel::kernel::{manual_kernel, optical_distance, scale_for_density};
+
+    #[test]
+    fn manual_into_is_the_manual_kernel_under_the_density_law() {
+        for (d, rho) in [(0.0, 1.0), (1.3, 1.0), (2.0, 4.0), (7.0, 0.5)] {
+            let want = scale_for_density(&manual_kernel(optical_distance(d, rho)), rho);
+            let mut got = Gmm::default();
+            manual_into(d * rho, 1.0 / rho, &mut got);
+            for (a, b) in got.components.iter().zip(&want.components) {
+                assert!((a.weight - b.weight).abs() < 1e-15);
+                assert!((a.t - b.t).abs() < 1e-12 && (a.sigma - b.sigma).abs() < 1e-12);
+            }
+        }
+    }
+}
