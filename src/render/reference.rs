@@ -3,10 +3,11 @@
 //!
 //! # What is simulated
 //! Paths are launched from the scene's light disk (collimated normal beam or
-//! diffuse, [`crate::forward::walk::launch`]) and walked with delta tracking
-//! through the albedo and density maps ([`crate::forward::walk::walk_delta`],
-//! unbiased for piecewise-constant ρ; the same walk as the kernel
-//! measurements). Channel c of path p uses stream (seed, p) for every c
+//! diffuse, [`crate::forward::walk::launch`]) and walked through the albedo
+//! and density maps with exact free flights through the texel columns
+//! ([`crate::forward::walk::walk_tracked`]: regular tracking, so a density
+//! contrast of 1e6 costs nothing extra, where delta tracking would take
+//! ρ_max/ρ null steps per collision; the same step protocol as every walk). Channel c of path p uses stream (seed, p) for every c
 //! (common random numbers across channels).
 //!
 //! # Estimators (per unit irradiance times E)
@@ -38,7 +39,7 @@ use crate::forward::medium::{Medium, Source};
 use crate::forward::rng::PathRng;
 use crate::forward::runner::{Tally, chunk_paths};
 use crate::forward::sampling::hg_pdf;
-use crate::forward::walk::{Fate, entry_weight, launch, walk_delta};
+use crate::forward::walk::{Fate, entry_weight, launch, walk_tracked};
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
 
@@ -212,17 +213,16 @@ impl Reference {
                 contrib.clear();
                 let view = &self.view;
                 let density = &self.density;
-                let (fate, events) = walk_delta(
+                let (fate, events) = walk_tracked(
                     &self.medium,
                     albedo,
-                    density,
+                    &density.map,
                     MAX_EVENTS,
                     start,
                     &mut rng,
                     |v, w| {
                         if radiance && let Some((i, j)) = view.pixel_of(v[0], v[1]) {
-                            use crate::forward::walk::DensityField;
-                            let tr = (-density.density(v[0], v[1]) * v[2].abs()).exp();
+                            let tr = (-density.map.at(v[0], v[1]) * v[2].abs()).exp();
                             contrib.push((i * n + j, hg_pdf(g, w[2]) * tr * t_normal));
                         }
                     },

@@ -142,16 +142,16 @@ impl Variant {
 }
 
 /// Nodes of [`BasisTable`] in the albedo coordinate x = √(1 − α).
-const TABLE_NODES: usize = 1024;
+const TABLE_NODES: usize = 8192;
 
-/// The basis model tabulated for fast evaluation: A_k/α² and B_k at
+/// The basis model tabulated for fast evaluation: ln(A_k/(2πα²)) and B_k at
 /// [`TABLE_NODES`] equally spaced values of x = √(1 − α), linearly
-/// interpolated (measured max relative error of Rₘ against
-/// [`BasisModel::multi`] in the tests: < 1e-5), plus p₁ at α = 1.
+/// interpolated (max relative error of Rₘ against [`BasisModel::multi`]
+/// for r ≤ 10 MFP and any α: < 1e-4, tested), plus p₁ at α = 1.
 #[derive(Clone, Debug)]
 pub struct BasisTable {
     k: usize,
-    /// Per node: K values of A_k/(2π α²) then K values of B_k.
+    /// Per node: K values of ln(A_k/(2π α²)) then K values of B_k.
     nodes: Vec<f64>,
     single: ExpMixture,
     /// The model's η (for the radiance conversion).
@@ -167,7 +167,7 @@ impl BasisTable {
             // α from x; at α = 0 use A/α² from a tiny α (the ratio is smooth).
             let alpha = (1.0 - x * x).max(1e-150);
             let m = model.multi(alpha);
-            nodes.extend(m.a.iter().map(|a| a / (alpha * alpha) / (2.0 * PI)));
+            nodes.extend(m.a.iter().map(|a| (a / (alpha * alpha) / (2.0 * PI)).ln()));
             nodes.extend(m.b.iter().copied());
         }
         BasisTable {
@@ -195,9 +195,9 @@ impl BasisTable {
         let n1 = &self.nodes[(i + 1) * 2 * k..(i + 2) * 2 * k];
         let mut sum = 0.0;
         for j in 0..k {
-            let a = n0[j] + f * (n1[j] - n0[j]);
+            let ln_a = n0[j] + f * (n1[j] - n0[j]);
             let b = n0[k + j] + f * (n1[k + j] - n0[k + j]);
-            sum += a * (-b * r).exp();
+            sum += (ln_a - b * r).exp();
         }
         sum
     }
@@ -228,7 +228,9 @@ impl BasisTable {
         [
             self.single.scaled(alpha),
             ExpMixture {
-                a: (0..k).map(|j| lerp(j) * 2.0 * PI * alpha * alpha).collect(),
+                a: (0..k)
+                    .map(|j| lerp(j).exp() * 2.0 * PI * alpha * alpha)
+                    .collect(),
                 b: (0..k).map(|j| lerp(k + j)).collect(),
                 power: 1,
             },
@@ -302,15 +304,20 @@ impl SvBssrdf {
                 "a meta-model file for method learned",
             ));
         }
-        if let Density::Map(rho) = &density
-            && albedo.iter().any(|a| (a.nx, a.ny) != (rho.nx, rho.ny))
-        {
-            return Err(Error::param(
-                "density map shape",
-                format!("{}x{}", rho.nx, rho.ny),
-                "the albedo map's shape",
-            ));
-        }
+        // Products ρα need one grid: resample every map onto a common one
+        // (exact for nearest-neighbour maps, see `common_grid`).
+        let (albedo, density) = {
+            let mut all: Vec<&TexelMap> = albedo.iter().collect();
+            if let Density::Map(rho) = &density {
+                all.push(rho);
+            }
+            let mut maps = common_grid(&all)?;
+            let density = match density {
+                Density::Map(_) => Density::Map(maps.pop().expect("pushed")),
+                c => c,
+            };
+            (maps, density)
+        };
         let pyramids = if method.uses_kernel() {
             let varying = matches!(density, Density::Map(_));
             let alpha = if !varying || variant.plain {
@@ -670,6 +677,44 @@ struct Rows {
     rho: Option<RowPrefix>,
 }
 
+/// The maps resampled onto one texel grid that refines all of them, so that
+/// every fine texel lies inside one texel of each map (then the resampling
+/// is exact): centred, half-width the largest of the maps', spacing τ, or
+/// τ/2 where the texel counts differ in parity (their edges are then offset
+/// by τ/2). Maps must share τ. Maps already of one shape come back as is.
+fn common_grid(maps: &[&TexelMap]) -> Result<Vec<TexelMap>> {
+    let tau = maps[0].texel;
+    if maps.iter().any(|m| m.texel != tau) {
+        return Err(Error::param(
+            "texel size",
+            "differing",
+            "the same for every map",
+        ));
+    }
+    let (nx, ny) = (maps[0].nx, maps[0].ny);
+    if maps.iter().all(|m| (m.nx, m.ny) == (nx, ny)) {
+        return Ok(maps.iter().map(|m| (*m).clone()).collect());
+    }
+    let parity = |f: fn(&TexelMap) -> usize| maps.iter().any(|m| (f(m) + f(maps[0])) % 2 == 1);
+    let fine = parity(|m| m.nx) || parity(|m| m.ny);
+    let h = if fine { 0.5 * tau } else { tau };
+    let big_x = maps.iter().map(|m| m.nx).max().unwrap_or(1) as f64 * tau;
+    let big_y = maps.iter().map(|m| m.ny).max().unwrap_or(1) as f64 * tau;
+    let (gx, gy) = ((big_x / h).round() as usize, (big_y / h).round() as usize);
+    maps.iter()
+        .map(|m| {
+            let mut v = Vec::with_capacity(gx * gy);
+            for i in 0..gy {
+                let y = 0.5 * big_y - (i as f64 + 0.5) * h;
+                for j in 0..gx {
+                    v.push(m.at(-0.5 * big_x + (j as f64 + 0.5) * h, y));
+                }
+            }
+            TexelMap::new(gx, gy, h, v)
+        })
+        .collect()
+}
+
 /// The pair frame on the surface: origin x_i, unit axis toward x_e.
 struct Frame {
     xi: [f64; 2],
@@ -724,7 +769,139 @@ fn manual_into(d1: f64, scale: f64, out: &mut Gmm) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::forward::rng::PathRng;
     use crate::metamodel::kernel::{manual_kernel, optical_distance, scale_for_density};
+
+    fn basis() -> (BasisModel, Arc<BasisTable>) {
+        let m = BasisModel::load(std::path::Path::new("data/profiles/basis.json")).unwrap();
+        let t = Arc::new(BasisTable::new(&m));
+        (m, t)
+    }
+
+    fn noise_map(n: usize, tau: f64, lo: f64, hi: f64, seed: u64) -> TexelMap {
+        let mut rng = PathRng::new(seed, 0);
+        let v = (0..n * n).map(|_| lo + (hi - lo) * rng.uniform()).collect();
+        TexelMap::new(n, n, tau, v).unwrap()
+    }
+
+    #[test]
+    fn basis_table_matches_the_model() {
+        let (m, t) = basis();
+        let mut worst: f64 = 0.0;
+        for k in 0..2000 {
+            let alpha = 1.0 - ((k as f64 + 0.37) / 2000.0).powi(2);
+            for r in [0.0f64, 0.05, 0.5, 2.0, 10.0] {
+                let want = m.multi(alpha).density(r.max(1e-300)) / (2.0 * PI * r.max(1e-300));
+                let got = alpha * alpha * t.multi_over_alpha2(r, alpha);
+                if want > 1e-12 {
+                    worst = worst.max((got / want - 1.0).abs());
+                }
+            }
+        }
+        assert!(worst < 1e-4, "worst relative error {worst}");
+        // Single scattering is exact.
+        let r = 0.7;
+        let want = m.single(1.0).density(r) / (2.0 * PI * r);
+        assert!((t.single_exitance(r) - want).abs() < 1e-15 * want.max(1.0));
+    }
+
+    #[test]
+    fn common_grid_resamples_exactly() {
+        let a = noise_map(5, 0.5, 0.0, 1.0, 3);
+        let b = noise_map(8, 0.5, 0.5, 2.0, 4);
+        let c = TexelMap::new(1, 1, 0.5, vec![0.25]).unwrap();
+        let out = common_grid(&[&a, &b, &c]).unwrap();
+        assert_eq!((out[0].nx, out[0].texel), (16, 0.25));
+        let mut rng = PathRng::new(1, 1);
+        for _ in 0..10_000 {
+            let (x, y) = (6.0 * rng.uniform() - 3.0, 6.0 * rng.uniform() - 3.0);
+            for (m, o) in [&a, &b, &c].iter().zip(&out) {
+                assert_eq!(m.at(x, y), o.at(x, y), "({x}, {y})");
+            }
+        }
+        assert!(common_grid(&[&a, &TexelMap::new(1, 1, 0.3, vec![1.0]).unwrap()]).is_err());
+    }
+
+    #[test]
+    fn ellipse_rows_match_a_fine_grid() {
+        let (_, t) = basis();
+        let albedo = noise_map(48, 0.25, 0.0, 1.0, 1);
+        let rho = noise_map(48, 0.25, 0.5, 4.0, 2);
+        for density in [Density::Constant(1.5), Density::Map(rho.clone())] {
+            let sv = SvBssrdf::new(
+                Method::Ellipse,
+                Variant::default(),
+                t.clone(),
+                None,
+                vec![albedo.clone()],
+                density.clone(),
+            )
+            .unwrap();
+            for (xi, xe) in [([0.1, 0.2], [2.3, -1.1]), ([-5.0, 5.5], [-5.6, 7.0]), ([1.0, 1.0], [1.0, 1.0])] {
+                let d = ((xe[0] - xi[0]) as f64).hypot(xe[1] - xi[1]);
+                let rho0 = 0.5 * (density.at(xi[0], xi[1]) + density.at(xe[0], xe[1]));
+                let (a_rows, r_rows) = sv.ellipse_average(0, xi, xe, d, rho0);
+                // Brute force: a grid of spacing τ/16 over the bounding box.
+                let a = 0.5 * d + 1.0 / rho0;
+                let b = (a * a - 0.25 * d * d).sqrt();
+                let c = [0.5 * (xi[0] + xe[0]), 0.5 * (xi[1] + xe[1])];
+                let u = if d > 0.0 { [(xe[0] - xi[0]) / d, (xe[1] - xi[1]) / d] } else { [1.0, 0.0] };
+                let h = 0.25 / 16.0;
+                let (mut ra, mut r, mut n) = (0.0, 0.0, 0.0);
+                let m = (a / h).ceil() as i64;
+                for i in -m..m {
+                    for j in -m..m {
+                        let (p, q) = ((i as f64 + 0.5) * h, (j as f64 + 0.5) * h);
+                        if (p / a).powi(2) + (q / b).powi(2) > 1.0 {
+                            continue;
+                        }
+                        let (x, y) = (c[0] + p * u[0] - q * u[1], c[1] + p * u[1] + q * u[0]);
+                        let rr = density.at(x, y);
+                        ra += rr * albedo.at(x, y);
+                        r += rr;
+                        n += 1.0;
+                    }
+                }
+                assert!((a_rows - ra / r).abs() < 0.01, "{a_rows} vs {}", ra / r);
+                assert!((r_rows / (r / n) - 1.0).abs() < 0.01, "{r_rows} vs {}", r / n);
+            }
+        }
+    }
+
+    #[test]
+    fn split_form_stays_bounded_as_albedos_vanish() {
+        let (_, t) = basis();
+        let meta = Arc::new(MetaModelFile::load(std::path::Path::new("data/profiles/metamodel.json")).unwrap());
+        for eps in [0.0, 1e-300, 1e-12, 1e-6, 1e-3] {
+            // A map of ε with one bright texel far away, and a map of ε only.
+            let mut v = vec![eps; 16 * 16];
+            v[0] = 0.9;
+            for map in [TexelMap::new(16, 16, 0.5, v).unwrap(), TexelMap::new(1, 1, 0.5, vec![eps]).unwrap()] {
+                for method in [Method::Manual, Method::Learned] {
+                    for variant in [Variant::default(), Variant { plain: true, vertex_kernels: true, two_pass: true }] {
+                        // A 1 × 1 density map under a 16 × 16 albedo: resampled.
+                        let rho = Density::Map(TexelMap::new(1, 1, 0.5, vec![1.0]).unwrap());
+                        let sv = SvBssrdf::new(method, variant, t.clone(), Some(meta.clone()), vec![map.clone()], rho).unwrap();
+                        for d in [0.0, 0.3, 3.0] {
+                            let s = sv.eval(0, [0.5, 0.5], [0.5 + d, 0.5], &mut Scratch::default());
+                            assert!(s.is_finite() && s >= 0.0, "{eps} {d}: {s}");
+                            // S = O(ε): single scattering carries α_i, the rest α_iα_e/α_t²·Rₘ(α_t).
+                            assert!(s <= 1e3 * eps.max(1e-300) / d.max(1e-6), "{eps} {d}: {s}");
+                        }
+                    }
+                }
+            }
+            // Near the bright texel the ratio α_iα_e/α_t² is ε²/α_t²: finite.
+            let mut v = vec![eps; 16 * 16];
+            v[0] = 0.9;
+            let map = TexelMap::new(16, 16, 0.5, v).unwrap();
+            for method in [Method::Manual, Method::Learned] {
+                let sv = SvBssrdf::new(method, Variant::default(), t.clone(), Some(meta.clone()), vec![map.clone()], Density::Constant(1.0)).unwrap();
+                let s = sv.eval(0, [-3.0, 3.0], [-2.0, 3.5], &mut Scratch::default());
+                assert!(s.is_finite() && s >= 0.0, "{eps}: {s}");
+            }
+        }
+    }
 
     #[test]
     fn manual_into_is_the_manual_kernel_under_the_density_law() {
