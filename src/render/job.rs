@@ -11,6 +11,7 @@
 //!   `<pass>/<method>_diff.png` — signed difference to the reference;
 //! * `<pass>/<method>_mean.npy`, `<pass>/<method>_stderr.npy` — `(N, N, C)`;
 //! * `<pass>/reference.tally.json` — the mergeable reference tally;
+//! * `<pass>/albedo.npy`, `<pass>/density.npy` — the material's texels;
 //! * `<pass>/row.png` — reference | each method (in render order), with the
 //!   signed differences to the reference below (blue −, red +, ±25 % of
 //!   the white point);
@@ -357,6 +358,28 @@ pub fn tag_or(tag: &str) -> &str {
     if tag.is_empty() { "main" } else { tag }
 }
 
+/// Writes the pass's material as texel arrays for external renderers
+/// (`tools/mitsuba_check.py`): `albedo.npy` `(ny, nx)` or `(ny, nx, 3)` and
+/// `density.npy` `(ny, nx)` (a constant density as a 1 × 1 array), row 0 at
+/// +y, column 0 at −x, texel size and conventions in `render.json`.
+fn write_maps(scene: &Scene, pass: &Pass, dir: &Path) -> Result<()> {
+    let a = &scene.albedo;
+    let (nx, ny) = (a[0].nx, a[0].ny);
+    let albedo = ndarray::Array3::from_shape_fn((ny, nx, a.len()), |(i, j, c)| {
+        a[c].values[i * nx + j]
+    });
+    crate::io::write_npy_atomic(&dir.join("albedo.npy"), &albedo)?;
+    let density = match (pass.density, &scene.density) {
+        (None, Some(m)) => {
+            ndarray::Array2::from_shape_vec((m.ny, m.nx), m.values.clone()).map_err(|e| {
+                Error::format(&scene.path, "density", e)
+            })?
+        }
+        (r, _) => ndarray::Array2::from_elem((1, 1), r.unwrap_or(1.0)),
+    };
+    crate::io::write_npy_atomic(&dir.join("density.npy"), &density)
+}
+
 /// Writes every image and the sidecar `render.json`; returns the sidecar.
 pub fn write_outputs(
     scene: &Scene,
@@ -366,6 +389,7 @@ pub fn write_outputs(
     let mut pass_docs = Vec::new();
     for pass in passes {
         let dir = opts.out.join(tag_or(&pass.tag));
+        write_maps(scene, pass, &dir)?;
         let reference = pass
             .rendered
             .iter()
@@ -428,7 +452,16 @@ pub fn write_outputs(
         "scene_hash": scene_hash(scene)?,
         "resolution": scene.resolution,
         "half_width": scene.half_width,
-        "observable": format!("{:?}", scene.observable),
+        "observable": format!("{:?}", scene.observable).to_lowercase(),
+        "eta": scene.eta,
+        "g": scene.g,
+        "texel": scene.texel,
+        "light": {
+            "kind": format!("{:?}", scene.light).to_lowercase(),
+            "radius": scene.light_radius,
+            "irradiance": scene.irradiance,
+        },
+        "conventions": "maps: centred on the origin, row 0 = +y, column 0 = -x, nearest-neighbour, edge texels extend to infinity; pixel (i, j) covers x in -W + [j, j+1]*2W/N, y in W - [i+1, i]*2W/N; z < 0 is the medium (half-space)",
         "spp": opts.spp.unwrap_or(scene.samples),
         "sampling": opts.sampling.name(),
         "variant": opts.variant.tag(),

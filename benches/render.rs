@@ -1,0 +1,77 @@
+//! Cost of one SV-BSSRDF evaluation S(x_i, x_e) per method and pair distance
+//! (issue 6 target: `learned` < 200 ns and flat in d; `line` and `ellipse`
+//! grow with d), on the `stripes` texture (τ = 0.05 MFP) with a density
+//! ramp, so that every aggregate is density-scaled. Pairs at distance d in
+//! 64 directions from spread-out entry points. `cargo bench --bench render`.
+
+use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
+use std::hint::black_box;
+use std::path::Path;
+use std::sync::Arc;
+use svkernel::forward::maps::TexelMap;
+use svkernel::metamodel::basis::BasisModel;
+use svkernel::metamodel::meta::MetaModelFile;
+use svkernel::render::svbssrdf::{BasisTable, Density, Method, Scratch, SvBssrdf, Variant};
+
+fn svbssrdf(c: &mut Criterion) {
+    let basis = Arc::new(BasisTable::new(
+        &BasisModel::load(Path::new("data/profiles/basis.json")).expect("shipped basis"),
+    ));
+    let meta = Arc::new(
+        MetaModelFile::load(Path::new("data/profiles/metamodel.json")).expect("shipped meta-model"),
+    );
+    // 320 × 320 texels of 0.05 MFP: stripes 0.3 / 0.95 of width 0.5 MFP,
+    // density ramp 0.5 … 4 across x.
+    let (n, tau) = (320usize, 0.05);
+    let x_of = |j: usize| -0.5 * n as f64 * tau + (j as f64 + 0.5) * tau;
+    let albedo = TexelMap::new(
+        n,
+        n,
+        tau,
+        (0..n * n)
+            .map(|k| if ((x_of(k % n) / 0.5).floor() as i64) % 2 == 0 { 0.3 } else { 0.95 })
+            .collect(),
+    )
+    .expect("map");
+    let density = TexelMap::new(
+        n,
+        n,
+        tau,
+        (0..n * n).map(|k| 0.5 + 3.5 * (k % n) as f64 / (n - 1) as f64).collect(),
+    )
+    .expect("map");
+    let mut g = c.benchmark_group("svbssrdf");
+    for method in Method::ALL {
+        let sv = SvBssrdf::new(
+            method,
+            Variant::default(),
+            basis.clone(),
+            Some(meta.clone()),
+            vec![albedo.clone()],
+            Density::Map(density.clone()),
+        )
+        .expect("prepared");
+        for d in [0.1, 1.0, 10.0, 50.0] {
+            let pairs: Vec<([f64; 2], [f64; 2])> = (0..64)
+                .map(|k| {
+                    let phi = k as f64 * 2.399_963; // golden angle
+                    let xi = [2.0 * (k as f64 * 0.37).sin(), 2.0 * (k as f64 * 0.61).cos()];
+                    (xi, [xi[0] + d * phi.cos(), xi[1] + d * phi.sin()])
+                })
+                .collect();
+            g.bench_with_input(BenchmarkId::new(method.name(), d), &pairs, |b, pairs| {
+                let mut scratch = Scratch::default();
+                let mut i = 0;
+                b.iter(|| {
+                    let (xi, xe) = pairs[i & 63];
+                    i += 1;
+                    black_box(sv.eval(0, black_box(xi), black_box(xe), &mut scratch))
+                })
+            });
+        }
+    }
+    g.finish();
+}
+
+criterion_group!(benches, svbssrdf);
+criterion_main!(benches);
