@@ -29,7 +29,13 @@ fn svbssrdf(c: &mut Criterion) {
         n,
         tau,
         (0..n * n)
-            .map(|k| if ((x_of(k % n) / 0.5).floor() as i64) % 2 == 0 { 0.3 } else { 0.95 })
+            .map(|k| {
+                if ((x_of(k % n) / 0.5).floor() as i64) % 2 == 0 {
+                    0.3
+                } else {
+                    0.95
+                }
+            })
             .collect(),
     )
     .expect("map");
@@ -37,7 +43,9 @@ fn svbssrdf(c: &mut Criterion) {
         n,
         n,
         tau,
-        (0..n * n).map(|k| 0.5 + 3.5 * (k % n) as f64 / (n - 1) as f64).collect(),
+        (0..n * n)
+            .map(|k| 0.5 + 3.5 * (k % n) as f64 / (n - 1) as f64)
+            .collect(),
     )
     .expect("map");
     let mut g = c.benchmark_group("svbssrdf");
@@ -73,5 +81,82 @@ fn svbssrdf(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, svbssrdf);
+criterion_group!(benches, svbssrdf, walks);
 criterion_main!(benches);
+
+/// Scattering events per second of the reference walk (`walk_tracked`
+/// through texel maps, image tally) against the homogeneous scalar walk
+/// (`simulate_scalar`) under the same collimated disk light, both on one
+/// thread: (a) a constant albedo 0.9, where only the machinery differs, and
+/// (b) the `stripes` albedo with a density ramp (τ = 0.05 MFP).
+fn walks(c: &mut Criterion) {
+    use criterion::Throughput;
+    use svkernel::forward::medium::{Medium, Source};
+    use svkernel::forward::tally::RadialBins;
+    use svkernel::forward::walk::simulate_scalar;
+    use svkernel::render::estimator::View;
+    use svkernel::render::reference::Reference;
+    use svkernel::render::scene::{LightKind, Observable};
+    let paths = 16_384u64;
+    let view = View {
+        light_radius: 1.0,
+        irradiance: 1.0,
+        resolution: 64,
+        half_width: 4.0,
+    };
+    let medium = Medium::new(0.9, 0.3, 1.5, 1.0, None).expect("medium");
+    let source = Source::Collimated { radius: 1.0 };
+    let bins = RadialBins::default();
+    let mut g = c.benchmark_group("walk");
+    g.sample_size(10);
+    let events = simulate_scalar(&medium, &source, &bins, 1_000_000, 1, 0, paths).events;
+    g.throughput(Throughput::Elements(events));
+    g.bench_function("homogeneous_scalar_a0.9", |b| {
+        b.iter(|| {
+            black_box(simulate_scalar(
+                &medium, &source, &bins, 1_000_000, 1, 0, paths,
+            ))
+        })
+    });
+    let n = 320usize;
+    let stripes = TexelMap::new(
+        n,
+        n,
+        0.05,
+        (0..n * n)
+            .map(|k| if ((k % n) / 10) % 2 == 0 { 0.3 } else { 0.95 })
+            .collect(),
+    )
+    .expect("map");
+    let ramp = TexelMap::new(
+        n,
+        n,
+        0.05,
+        (0..n * n)
+            .map(|k| 0.5 + 3.5 * (k % n) as f64 / (n - 1) as f64)
+            .collect(),
+    )
+    .expect("map");
+    let constant = TexelMap::new(1, 1, 0.05, vec![0.9]).expect("map");
+    for (name, albedo, density) in [
+        ("reference_constant_a0.9", &constant, None),
+        ("reference_stripes_density_ramp", &stripes, Some(&ramp)),
+    ] {
+        let r = Reference::new(
+            1.5,
+            0.3,
+            std::slice::from_ref(albedo),
+            density,
+            1.0,
+            &LightKind::Collimated,
+            view,
+            Observable::Exitance,
+            1,
+            paths,
+        )
+        .expect("reference");
+        g.throughput(Throughput::Elements(r.chunk(0).events));
+        g.bench_function(name, |b| b.iter(|| black_box(r.chunk(0))));
+    }
+    g.finish();
+}

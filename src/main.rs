@@ -101,6 +101,9 @@ struct RenderArgs {
     /// Light samples per pixel of the model methods (default: the scene's `samples`).
     #[arg(long)]
     spp: Option<u32>,
+    /// Image resolution N (N × N; default: the scene's `image.resolution`).
+    #[arg(long)]
+    resolution: Option<usize>,
     /// uniform | importance | mis
     #[arg(long, default_value = "mis")]
     sampling: String,
@@ -168,6 +171,9 @@ enum Fit {
         /// Polynomial degree in sqrt(1 − α).
         #[arg(long, default_value_t = 5)]
         degree: usize,
+        /// Relative tolerance of LM's ftol/xtol (convergence criterion).
+        #[arg(long, default_value_t = 1e-12)]
+        tol: f64,
     },
     /// Export one profile's multiple-scattering fit problem and LM's optimum
     /// (for tools/nlopt_check.py).
@@ -523,7 +529,11 @@ fn merge(inputs: Vec<PathBuf>, out: PathBuf) -> Result<()> {
     let head: Head = svkernel::io::read_json(&inputs[0])?;
     if head.format == svkernel::render::reference::REFERENCE_FORMAT {
         svkernel::render::job::merge_reference(&inputs, &out)?;
-        println!("merged {} reference tallies into {}", inputs.len(), out.display());
+        println!(
+            "merged {} reference tallies into {}",
+            inputs.len(),
+            out.display()
+        );
         return Ok(());
     }
     if head.format == kernel::KERNEL_FORMAT {
@@ -591,7 +601,11 @@ fn fit(f: Fit) -> Result<()> {
             report: dir,
             components,
             degree,
+            tol,
         } => {
+            if !(tol > 0.0 && tol < 1.0) {
+                bail!("invalid --tol = {tol}: must be in (0, 1)");
+            }
             if !(1..=12).contains(&components) {
                 bail!("invalid components = {components}: must be in 1..=12");
             }
@@ -603,7 +617,7 @@ fn fit(f: Fit) -> Result<()> {
                     .unwrap_or(std::path::Path::new("."))
                     .join("basis_report")
             });
-            let r = report::fit_profiles(&input, &out, &dir, components, degree)?;
+            let r = report::fit_profiles(&input, &out, &dir, components, degree, tol)?;
             println!("{}", report::markdown_table(&r.training_accuracy));
             println!(
                 "joint fit: {} after {} evaluations, χ²/dof = {:.3}; R_d(α=1) = {:.5} (target {:.5}); {:.1} s",
@@ -831,7 +845,13 @@ fn render(a: RenderArgs) -> Result<()> {
     use svkernel::render::job::{RenderOptions, Target, render_scene, tag_or, write_outputs};
     use svkernel::render::scene::Scene;
     use svkernel::render::svbssrdf::Variant;
-    let scene = Scene::load(&a.scene)?;
+    let mut scene = Scene::load(&a.scene)?;
+    if let Some(n) = a.resolution {
+        if !(1..=4096).contains(&n) {
+            bail!("invalid --resolution = {n}: must be in 1..=4096");
+        }
+        scene.resolution = n;
+    }
     let targets = a
         .methods
         .iter()
@@ -872,9 +892,15 @@ fn render(a: RenderArgs) -> Result<()> {
     let passes = render_scene(&scene, &opts)?;
     let doc = write_outputs(&scene, &opts, &passes)?;
     println!("scene {} → {}", scene.name, a.out.display());
-    for (pass, pd) in passes.iter().zip(doc["passes"].as_array().into_iter().flatten()) {
+    for (pass, pd) in passes
+        .iter()
+        .zip(doc["passes"].as_array().into_iter().flatten())
+    {
         println!("pass {}:", tag_or(&pass.tag));
-        println!("  {:<11} {:>9} {:>10} {:>10}", "method", "time [s]", "rel RMSE", "rel bias");
+        println!(
+            "  {:<11} {:>9} {:>10} {:>10}",
+            "method", "time [s]", "rel RMSE", "rel bias"
+        );
         for m in pd["methods"].as_array().into_iter().flatten() {
             let f = |k: &str| {
                 m["metrics"][k]

@@ -407,7 +407,9 @@ fn tracked_walk_with_unit_density_is_the_plain_walk() {
         let s2 = launch(&Source::Pencil, 1.5, &mut r2).unwrap();
         let (mut v1, mut v2) = (Vec::new(), Vec::new());
         let a = walk_general(&medium, &albedo, 10_000, s1, &mut r1, |v, _| v1.push(v));
-        let b = walk_tracked(&medium, &albedo, &density, 10_000, s2, &mut r2, |v, _| v2.push(v));
+        let b = walk_tracked(&medium, &albedo, &density, 10_000, s2, &mut r2, |v, _| {
+            v2.push(v)
+        });
         assert_eq!(a, b);
         assert_eq!(v1, v2);
     }
@@ -424,7 +426,13 @@ fn tracked_and_delta_walks_agree_on_a_density_checker() {
     let albedo = UniformAlbedo(threshold_u32(0.9));
     let n_side = 16;
     let values = (0..n_side * n_side)
-        .map(|k| if (k / n_side + k % n_side) % 2 == 0 { 0.25 } else { 4.0 })
+        .map(|k| {
+            if (k / n_side + k % n_side) % 2 == 0 {
+                0.25
+            } else {
+                4.0
+            }
+        })
         .collect();
     let map = TexelMap::new(n_side, n_side, 0.5, values).unwrap();
     let delta_map = DensityMap::new(map.clone()).unwrap();
@@ -437,7 +445,15 @@ fn tracked_and_delta_walks_agree_on_a_density_checker() {
             let (fate, _) = if tracked {
                 walk_tracked(&medium, &albedo, &map, 100_000, s, &mut rng, |_, _| {})
             } else {
-                walk_delta(&medium, &albedo, &delta_map, 100_000, s, &mut rng, |_, _| {})
+                walk_delta(
+                    &medium,
+                    &albedo,
+                    &delta_map,
+                    100_000,
+                    s,
+                    &mut rng,
+                    |_, _| {},
+                )
             };
             if let Fate::Exit { x, y } = fate {
                 exits += 1;
@@ -449,10 +465,21 @@ fn tracked_and_delta_walks_agree_on_a_density_checker() {
         let p = exits as f64 / n as f64;
         let m = r_sum / exits as f64;
         let v = r2_sum / exits as f64 - m * m;
-        (p, (p * (1.0 - p) / n as f64).sqrt(), m, (v / exits as f64).sqrt())
+        (
+            p,
+            (p * (1.0 - p) / n as f64).sqrt(),
+            m,
+            (v / exits as f64).sqrt(),
+        )
     };
     let (p1, e1, m1, f1) = stats(true, 1);
     let (p2, e2, m2, f2) = stats(false, 2);
-    assert!((p1 - p2).abs() < 4.0 * e1.hypot(e2), "R_d {p1} ± {e1} vs {p2} ± {e2}");
-    assert!((m1 - m2).abs() < 4.0 * f1.hypot(f2), "mean r {m1} ± {f1} vs {m2} ± {f2}");
+    assert!(
+        (p1 - p2).abs() < 4.0 * e1.hypot(e2),
+        "R_d {p1} ± {e1} vs {p2} ± {e2}"
+    );
+    assert!(
+        (m1 - m2).abs() < 4.0 * f1.hypot(f2),
+        "mean r {m1} ± {f1} vs {m2} ± {f2}"
+    );
 }

@@ -83,7 +83,13 @@ half_width = 2.0
 /// §28, with H(1) = 1.25126; oracles.md).
 #[test]
 fn reference_reproduces_chandrasekhar_exitance_and_normal_radiance() {
-    for (observable, want) in [("exitance", 0.11523), ("radiance", 0.5 * 1.25126f64.powi(2) / (8.0 * std::f64::consts::PI))] {
+    for (observable, want) in [
+        ("exitance", 0.11523),
+        (
+            "radiance",
+            0.5 * 1.25126f64.powi(2) / (8.0 * std::f64::consts::PI),
+        ),
+    ] {
         let p = scene_file(
             &format!("chandra-{observable}"),
             &format!(
@@ -101,14 +107,20 @@ half_width = 2.0
             ),
         );
         let scene = Scene::load(&p).unwrap();
-        let passes =
-            render_scene(&scene, &options(vec![Target::Reference], 1, 2_000_000, observable)).unwrap();
+        let passes = render_scene(
+            &scene,
+            &options(vec![Target::Reference], 1, 2_000_000, observable),
+        )
+        .unwrap();
         let (m, e) = window_mean(&passes[0].rendered[0].image);
         assert!(
             (m - want).abs() < 4.0 * e + 1e-4,
             "{observable}: {m} ± {e} vs {want}"
         );
-        assert!(e < 0.01 * want, "{observable}: stderr {e} too large to test");
+        assert!(
+            e < 0.01 * want,
+            "{observable}: stderr {e} too large to test"
+        );
     }
 }
 
@@ -133,19 +145,34 @@ half_width = 2.0
     let scene = Scene::load(&p).unwrap();
     let passes = render_scene(
         &scene,
-        &options(vec![Target::Reference, Target::Model(Method::Learned)], 1024, 4_000_000, "agree"),
+        &options(
+            vec![Target::Reference, Target::Model(Method::Learned)],
+            1024,
+            4_000_000,
+            "agree",
+        ),
     )
     .unwrap();
     let (r, m) = (&passes[0].rendered[0].image, &passes[0].rendered[1].image);
     let mut z2 = 0.0;
     for k in 0..r.mean.len() {
-        let z = (m.mean[k] - r.mean[k]) / (m.stderr[k].powi(2) + r.stderr[k].powi(2) + (2e-3 * r.mean[k]).powi(2)).sqrt();
-        assert!(z.abs() < 5.0, "pixel {k}: {} vs {} (z = {z})", m.mean[k], r.mean[k]);
+        let z = (m.mean[k] - r.mean[k])
+            / (m.stderr[k].powi(2) + r.stderr[k].powi(2) + (2e-3 * r.mean[k]).powi(2)).sqrt();
+        assert!(
+            z.abs() < 5.0,
+            "pixel {k}: {} vs {} (z = {z})",
+            m.mean[k],
+            r.mean[k]
+        );
         z2 += z * z;
     }
     let n = r.mean.len() as f64;
     // χ² over 64 pixels: mean z² within its 5σ band (σ = √(2/n)).
-    assert!((z2 / n - 1.0).abs() < 5.0 * (2.0 / n).sqrt(), "mean z² = {}", z2 / n);
+    assert!(
+        (z2 / n - 1.0).abs() < 5.0 * (2.0 / n).sqrt(),
+        "mean z² = {}",
+        z2 / n
+    );
 }
 
 #[test]
@@ -186,7 +213,17 @@ half_width = 2.0
     )
     .unwrap();
     let key = serde_json::json!("k");
-    let go = |range| run(&key, range, reference.empty(), |c| reference.chunk(c), &RunOptions::default()).unwrap().tally;
+    let go = |range| {
+        run(
+            &key,
+            range,
+            reference.empty(),
+            |c| reference.chunk(c),
+            &RunOptions::default(),
+        )
+        .unwrap()
+        .tally
+    };
     let full = go(chunk_range(paths, None));
     let one = rayon::ThreadPoolBuilder::new()
         .num_threads(1)
@@ -206,7 +243,11 @@ fn assert_finite(passes: &[svkernel::render::job::Pass], what: &str) {
     for pass in passes {
         for r in &pass.rendered {
             assert!(
-                r.image.mean.iter().chain(&r.image.stderr).all(|v| v.is_finite() && *v >= 0.0),
+                r.image
+                    .mean
+                    .iter()
+                    .chain(&r.image.stderr)
+                    .all(|v| v.is_finite() && *v >= 0.0),
                 "{what}: {} has a non-finite or negative pixel",
                 r.target.name()
             );
@@ -220,23 +261,55 @@ fn hard_cases_give_finite_images() {
     targets.push(Target::Reference);
     let cases = [
         // α = 0 and α = 1 texels side by side.
-        ("albedo-0-1", r#"albedo = { pattern = "checker", values = [0.0, 1.0], cell = 0.5 }"#, "radius = 1.0", "resolution = 6\nhalf_width = 2.0"),
+        (
+            "albedo-0-1",
+            r#"albedo = { pattern = "checker", values = [0.0, 1.0], cell = 0.5 }"#,
+            "radius = 1.0",
+            "resolution = 6\nhalf_width = 2.0",
+        ),
         // Density 1e-3 and 1e3 across a step.
-        ("density-extremes", "albedo = { constant = 0.9 }\ndensity = { pattern = \"stripes\", values = [1e-3, 1e3], width = 1.0 }", "radius = 1.0", "resolution = 6\nhalf_width = 2.0"),
+        (
+            "density-extremes",
+            "albedo = { constant = 0.9 }\ndensity = { pattern = \"stripes\", values = [1e-3, 1e3], width = 1.0 }",
+            "radius = 1.0",
+            "resolution = 6\nhalf_width = 2.0",
+        ),
         // A 1×1 texture, pixels far beyond it.
-        ("one-texel", "albedo = { constant = 0.7, size = [1, 1] }", "radius = 1.0", "resolution = 5\nhalf_width = 20.0"),
+        (
+            "one-texel",
+            "albedo = { constant = 0.7, size = [1, 1] }",
+            "radius = 1.0",
+            "resolution = 5\nhalf_width = 20.0",
+        ),
         // A light smaller than a texel; pixels at and beyond the texture edge.
-        ("tiny-light", "albedo = { pattern = \"stripes\", values = [0.2, 0.9], width = 0.5, size = [8, 8] }", "radius = 0.01", "resolution = 6\nhalf_width = 3.0"),
+        (
+            "tiny-light",
+            "albedo = { pattern = \"stripes\", values = [0.2, 0.9], width = 0.5, size = [8, 8] }",
+            "radius = 0.01",
+            "resolution = 6\nhalf_width = 3.0",
+        ),
         // One pixel: x_e and x_i can coincide (d = 0).
-        ("one-pixel", "albedo = { constant = 0.5 }", "radius = 0.5", "resolution = 1\nhalf_width = 1e-9"),
+        (
+            "one-pixel",
+            "albedo = { constant = 0.5 }",
+            "radius = 0.5",
+            "resolution = 1\nhalf_width = 1e-9",
+        ),
     ];
     for (name, albedo, light, image) in cases {
-        let p = scene_file(name, &format!("texel = 0.5\n{albedo}\n[light]\n{light}\n[image]\n{image}\n"));
+        let p = scene_file(
+            name,
+            &format!("texel = 0.5\n{albedo}\n[light]\n{light}\n[image]\n{image}\n"),
+        );
         let scene = Scene::load(&p).unwrap_or_else(|e| panic!("{name}: {e}"));
         for sampling in [Sampling::Uniform, Sampling::Mis] {
             let mut o = options(targets.clone(), 8, 20_000, name);
             o.sampling = sampling;
-            o.variant = Variant { plain: true, vertex_kernels: true, two_pass: true };
+            o.variant = Variant {
+                plain: true,
+                vertex_kernels: true,
+                two_pass: true,
+            };
             let passes = render_scene(&scene, &o).unwrap_or_else(|e| panic!("{name}: {e}"));
             assert_finite(&passes, name);
         }
@@ -249,12 +322,16 @@ fn bad_textures_are_clear_errors() {
     std::fs::create_dir_all(&dir).unwrap();
     for (name, v) in [("nan", f64::NAN), ("negative", -0.1), ("over", 1.5)] {
         let npy = dir.join(format!("{name}.npy"));
-        let arr = ndarray::Array2::from_shape_fn((4, 4), |(i, j)| if i == 1 && j == 2 { v } else { 0.5 });
+        let arr =
+            ndarray::Array2::from_shape_fn((4, 4), |(i, j)| if i == 1 && j == 2 { v } else { 0.5 });
         svkernel::io::write_npy_atomic(&npy, &arr).unwrap();
         let p = dir.join(format!("{name}.toml"));
         std::fs::write(&p, format!("albedo = {{ file = \"{name}.npy\" }}\n")).unwrap();
         let e = Scene::load(&p).unwrap_err().to_string();
-        assert!(e.contains(&format!("{name}.toml")) && e.contains("albedo"), "{e}");
+        assert!(
+            e.contains(&format!("{name}.toml")) && e.contains("albedo"),
+            "{e}"
+        );
     }
     let _ = std::fs::remove_dir_all(&dir);
     let _: &Path = Path::new(".");

@@ -5,12 +5,15 @@
 # R_d (at least 2e7 paths, for smooth radial bins); seed 1000 + index.
 #
 #   bash tools/make_profiles.sh            # writes data/profiles/eta1.5_g0.3_pencil/a*.json
+#   SOURCE=diffuse bash tools/make_profiles.sh   # diffuse incidence at a point:
+#                                          # data/profiles/eta1.5_g0.3_diffuse/a*.json
 #   SHARD=k/N bash tools/make_profiles.sh  # one slice of every simulation (merge later)
 #
 # Takes about 45 s on 2 cores (lanes engine; 1.42e9 paths, 9.8e9 scattering events).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-out=${OUT:-data/profiles/eta1.5_g0.3_pencil}
+source=${SOURCE:-pencil}
+out=${OUT:-data/profiles/eta1.5_g0.3_$source}
 mkdir -p "$out"
 cargo build --release --quiet
 shard_args=()
@@ -19,7 +22,7 @@ run() {  # albedo paths seed
   local f="$out/a$1.json"
   [ -n "${SHARD:-}" ] && f="$out/a$1.shard${SHARD/\//of}.json"
   ./target/release/svkernel simulate profile --albedo "$1" --eta 1.5 --g 0.3 \
-    --source pencil --paths "$2" --seed "$3" "${shard_args[@]}" --resume --out "$f" | sed -n 1p
+    --source "$source" --paths "$2" --seed "$3" "${shard_args[@]}" --resume --out "$f" | sed -n 1p
 }
 run 0.010000 696e6 1000
 run 0.070875 88e6 1001

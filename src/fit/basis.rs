@@ -87,6 +87,7 @@ impl BasisFit<'_> {
     /// The model this parameter vector describes.
     pub fn model(
         &self,
+        incidence: String,
         single: ExpMixture,
         albedo_range: (f64, f64),
         eta: f64,
@@ -104,7 +105,7 @@ impl BasisFit<'_> {
             version: BASIS_VERSION,
             eta,
             g,
-            incidence: "pencil".into(),
+            incidence,
             degree: self.degree,
             ln_a: rows(0),
             ln_b: rows(self.k * nc),
@@ -342,7 +343,14 @@ pub fn fit_basis(
     };
     let (solved, joint) = solve("basis (joint, all albedos)", problem, opts)?;
     let range = (data[0].alpha, data[data.len() - 1].alpha);
-    let model = solved.model(single, range, c0.medium.eta, c0.medium.g, provenance);
+    let model = solved.model(
+        c0.source.to_string(),
+        single,
+        range,
+        c0.medium.eta,
+        c0.medium.g,
+        provenance,
+    );
     Ok(BasisFitOutcome {
         model,
         joint,

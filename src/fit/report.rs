@@ -124,6 +124,7 @@ pub fn fit_profiles(
     report_dir: &Path,
     k: usize,
     degree: usize,
+    tol: f64,
 ) -> Result<BasisReport> {
     let start = std::time::Instant::now();
     let docs = load_profiles(in_dir)?;
@@ -138,7 +139,16 @@ pub fn fit_profiles(
         joint,
         single,
         per_profile,
-    } = fit_basis(&docs, k, degree, &FitOptions::default(), provenance)?;
+    } = fit_basis(
+        &docs,
+        k,
+        degree,
+        &FitOptions {
+            tol,
+            ..FitOptions::default()
+        },
+        provenance,
+    )?;
     crate::io::write_json_atomic(out, &model)?;
     let mut rows: Vec<AccuracyRow> = docs.iter().map(|d| accuracy(&model, d)).collect();
     rows.sort_by(|a, b| a.alpha.total_cmp(&b.alpha));

@@ -76,9 +76,11 @@ pub enum Source {
 }
 
 impl Source {
-    /// Parses `pencil`, `collimated:R` or `diffuse:R`.
+    /// Parses `pencil`, `diffuse` (a point source of cosine-distributed
+    /// directions: diffuse incidence at one point, radius 0), `collimated:R`
+    /// or `diffuse:R`.
     pub fn parse(s: &str) -> Result<Self> {
-        const ALLOWED: &str = "pencil, collimated:R or diffuse:R with R > 0 (MFP)";
+        const ALLOWED: &str = "pencil, diffuse, collimated:R or diffuse:R with R > 0 (MFP)";
         let radius = |r: &str| -> Result<f64> {
             match r.parse::<f64>() {
                 Ok(v) if v > 0.0 && v.is_finite() => Ok(v),
@@ -87,16 +89,19 @@ impl Source {
         };
         match s.split_once(':') {
             None if s == "pencil" => Ok(Source::Pencil),
+            None if s == "diffuse" => Ok(Source::Diffuse { radius: 0.0 }),
             Some(("collimated", r)) => Ok(Source::Collimated { radius: radius(r)? }),
             Some(("diffuse", r)) => Ok(Source::Diffuse { radius: radius(r)? }),
             _ => Err(Error::param("--source", s, ALLOWED)),
         }
     }
 
-    /// Incident power: 1 for the pencil, πR² (unit irradiance) for a disk.
+    /// Incident power: 1 for the pencil and the diffuse point source, πR²
+    /// (unit irradiance) for a disk.
     pub fn power(&self) -> f64 {
         match *self {
             Source::Pencil => 1.0,
+            Source::Diffuse { radius } if radius == 0.0 => 1.0,
             Source::Collimated { radius } | Source::Diffuse { radius } => {
                 std::f64::consts::PI * radius * radius
             }
@@ -115,6 +120,7 @@ impl std::fmt::Display for Source {
         match self {
             Source::Pencil => write!(f, "pencil"),
             Source::Collimated { radius } => write!(f, "collimated:{radius}"),
+            Source::Diffuse { radius } if *radius == 0.0 => write!(f, "diffuse"),
             Source::Diffuse { radius } => write!(f, "diffuse:{radius}"),
         }
     }

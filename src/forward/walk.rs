@@ -391,7 +391,16 @@ pub fn walk_tracked<A: AlbedoField>(
         };
         let (s, collided) = track_flight(density, (x, y), (w[0], w[1]), depth, to_wall);
         if !collided {
-            match wall(&mut x, &mut y, &mut z, &mut w, f64::INFINITY, bottom, b, inv_eta) {
+            match wall(
+                &mut x,
+                &mut y,
+                &mut z,
+                &mut w,
+                f64::INFINITY,
+                bottom,
+                b,
+                inv_eta,
+            ) {
                 // Not taken: the flight reached the wall (s = to_wall).
                 Wall::Missed => continue,
                 Wall::Reflected => continue,

@@ -433,9 +433,10 @@ mod tests {
     use crate::render::svbssrdf::{BasisTable, Density, Method};
 
     fn homogeneous(alpha: f64, rho: f64) -> SvBssrdf {
-        let model =
-            crate::metamodel::basis::BasisModel::load(std::path::Path::new("data/profiles/basis.json"))
-                .unwrap();
+        let model = crate::metamodel::basis::BasisModel::load(std::path::Path::new(
+            "data/profiles/basis.json",
+        ))
+        .unwrap();
         let map = TexelMap::new(1, 1, 1.0, vec![alpha]).unwrap();
         SvBssrdf::new(
             Method::Point,
@@ -468,7 +469,11 @@ mod tests {
 
     #[test]
     fn truncated_sampler_pdf_is_normalised_and_matches_its_samples() {
-        for (alpha, rho, dist, radius) in [(0.9, 1.0, 0.3, 1.0), (0.3, 2.0, 2.5, 1.0), (0.99, 0.5, 0.0, 4.0)] {
+        for (alpha, rho, dist, radius) in [
+            (0.9, 1.0, 0.3, 1.0),
+            (0.3, 2.0, 2.5, 1.0),
+            (0.99, 0.5, 0.0, 4.0),
+        ] {
             let sv = homogeneous(alpha, rho);
             let s = RadialSampler::new(&sv, alpha, rho);
             let w = s.window(dist, radius);
@@ -580,4 +585,3 @@ mod tests {
         assert!(f > 0.0 && f.is_finite());
     }
 }
-

@@ -188,6 +188,20 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
             LightKind::Diffuse => &opts.basis_diffuse,
         };
         let model = BasisModel::load(path)?;
+        let want = match scene.light {
+            LightKind::Collimated => "pencil",
+            LightKind::Diffuse => "diffuse",
+        };
+        if model.incidence != want {
+            return Err(Error::format(
+                path,
+                "incidence",
+                format!(
+                    "'{}', but the scene's {:?} light needs a basis fitted to '{want}' profiles",
+                    model.incidence, scene.light
+                ),
+            ));
+        }
         if (model.eta - scene.eta).abs() > 1e-9 || (model.g - scene.g).abs() > 1e-9 {
             return Err(Error::format(
                 path,
@@ -335,12 +349,7 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
             }
             if opts.run.progress {
                 let r = rendered.last().expect("just pushed");
-                eprintln!(
-                    "  {} {:<10} {:>8.2} s",
-                    scene.name,
-                    target.name(),
-                    r.wall_s
-                );
+                eprintln!("  {} {:<10} {:>8.2} s", scene.name, target.name(), r.wall_s);
             }
         }
         out.push(Pass {
@@ -365,16 +374,12 @@ pub fn tag_or(tag: &str) -> &str {
 fn write_maps(scene: &Scene, pass: &Pass, dir: &Path) -> Result<()> {
     let a = &scene.albedo;
     let (nx, ny) = (a[0].nx, a[0].ny);
-    let albedo = ndarray::Array3::from_shape_fn((ny, nx, a.len()), |(i, j, c)| {
-        a[c].values[i * nx + j]
-    });
+    let albedo =
+        ndarray::Array3::from_shape_fn((ny, nx, a.len()), |(i, j, c)| a[c].values[i * nx + j]);
     crate::io::write_npy_atomic(&dir.join("albedo.npy"), &albedo)?;
     let density = match (pass.density, &scene.density) {
-        (None, Some(m)) => {
-            ndarray::Array2::from_shape_vec((m.ny, m.nx), m.values.clone()).map_err(|e| {
-                Error::format(&scene.path, "density", e)
-            })?
-        }
+        (None, Some(m)) => ndarray::Array2::from_shape_vec((m.ny, m.nx), m.values.clone())
+            .map_err(|e| Error::format(&scene.path, "density", e))?,
         (r, _) => ndarray::Array2::from_elem((1, 1), r.unwrap_or(1.0)),
     };
     crate::io::write_npy_atomic(&dir.join("density.npy"), &density)
@@ -498,15 +503,18 @@ pub fn merge_reference(inputs: &[PathBuf], out: &Path) -> Result<()> {
         docs.push((p.clone(), doc));
     }
     let chunks = crate::forward::runner::join_chunks(
-        docs.iter()
-            .map(|(p, d)| (p.as_path(), d.chunks.as_slice())),
+        docs.iter().map(|(p, d)| (p.as_path(), d.chunks.as_slice())),
     )?;
     docs.sort_by_key(|(_, d)| d.chunks.first().copied());
     let (_, first) = docs.first().ok_or_else(|| Error::Merge {
         path: out.to_path_buf(),
         msg: "no inputs".into(),
     })?;
-    let mut total = ReferenceTally::new(first.tally.resolution, first.tally.channels, !first.tally.radiance.is_empty());
+    let mut total = ReferenceTally::new(
+        first.tally.resolution,
+        first.tally.channels,
+        !first.tally.radiance.is_empty(),
+    );
     let mut wall_s = 0.0;
     for (_, d) in &docs {
         crate::forward::runner::Tally::merge(&mut total, &d.tally);

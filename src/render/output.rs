@@ -35,10 +35,7 @@ pub fn write_exr(path: &Path, img: &Image, layer: &str) -> Result<()> {
     };
     let mut channels = Vec::new();
     for (c, name) in names(img.channels).into_iter().enumerate() {
-        channels.push(AnyChannel::new(
-            name,
-            FlatSamples::F32(plane(&img.mean, c)),
-        ));
+        channels.push(AnyChannel::new(name, FlatSamples::F32(plane(&img.mean, c))));
         channels.push(AnyChannel::new(
             format!("stderr.{name}").as_str(),
             FlatSamples::F32(plane(&img.stderr, c)),
@@ -189,7 +186,11 @@ pub fn write_row_png(path: &Path, images: &[&Image], white: f64, range: f64) -> 
                         .map(|c| img.mean[img.index(c, i, j)] - r.mean[r.index(c, i, j)])
                         .sum::<f64>()
                         / img.channels as f64;
-                    put(x0 + x, tile + gap + y, diverging((d / range).clamp(-1.0, 1.0)));
+                    put(
+                        x0 + x,
+                        tile + gap + y,
+                        diverging((d / range).clamp(-1.0, 1.0)),
+                    );
                 }
             }
         }

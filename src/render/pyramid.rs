@@ -327,9 +327,7 @@ impl GaussianPyramid {
         let (va, vb) = (la.sigma * la.sigma, lb.sigma * lb.sigma);
         let w = ((sigma * sigma - va) / (vb - va)).clamp(0.0, 1.0);
         let (ia, ib) = (la.corner(mu), lb.corner(mu));
-        let blend = |p: &GaussianPyramid| {
-            (1.0 - w) * p.bilerp_at(la, ia) + w * p.bilerp_at(lb, ib)
-        };
+        let blend = |p: &GaussianPyramid| (1.0 - w) * p.bilerp_at(la, ia) + w * p.bilerp_at(lb, ib);
         (blend(self), blend(other))
     }
 
@@ -830,19 +828,29 @@ mod tests {
             worst = worst.max((fast_phi(z) - want).abs());
         }
         assert!(worst < 3e-9, "{worst:e}");
-        assert_eq!((fast_phi(f64::NEG_INFINITY), fast_phi(f64::INFINITY)), (0.0, 1.0));
+        assert_eq!(
+            (fast_phi(f64::NEG_INFINITY), fast_phi(f64::INFINITY)),
+            (0.0, 1.0)
+        );
     }
 
     #[test]
     fn pair_queries_are_two_single_queries() {
         let (a, b) = (noise_map(37, 23, 0.5, 11), noise_map(37, 23, 0.5, 12));
-        let (pa, pb) = (GaussianPyramid::new(&a).unwrap(), GaussianPyramid::new(&b).unwrap());
+        let (pa, pb) = (
+            GaussianPyramid::new(&a).unwrap(),
+            GaussianPyramid::new(&b).unwrap(),
+        );
         let mut rng = PathRng::new(13, 0);
         for _ in 0..5000 {
             let mu = sample_mu(&a, &mut rng);
             let sigma = 0.5 * 1e-2 * 1e9f64.powf(rng.uniform());
             let (x, y) = pa.integrate_pair(&pb, mu, sigma);
-            assert_eq!((x, y), (pa.integrate(mu, sigma), pb.integrate(mu, sigma)), "μ {mu:?} σ {sigma}");
+            assert_eq!(
+                (x, y),
+                (pa.integrate(mu, sigma), pb.integrate(mu, sigma)),
+                "μ {mu:?} σ {sigma}"
+            );
         }
     }
 

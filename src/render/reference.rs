@@ -263,8 +263,8 @@ impl Reference {
         let r = self.view.light_radius;
         let h = 2.0 * self.view.half_width / n as f64;
         let big_n = tally.paths as f64;
-        let scale = irradiance * PI * r * r * entry_weight(&self.source, self.medium.eta)
-            / (big_n * h * h);
+        let scale =
+            irradiance * PI * r * r * entry_weight(&self.source, self.medium.eta) / (big_n * h * h);
         let mut img = Image::zeros(n, tally.channels);
         for k in 0..img.mean.len() {
             if tally.radiance.is_empty() {

@@ -367,12 +367,7 @@ impl SvBssrdf {
                         .iter()
                         .map(|a| {
                             let v = a.values.iter().zip(&rho.values).map(|(a, r)| a * r);
-                            GaussianPyramid::new(&TexelMap::new(
-                                a.nx,
-                                a.ny,
-                                a.texel,
-                                v.collect(),
-                            )?)
+                            GaussianPyramid::new(&TexelMap::new(a.nx, a.ny, a.texel, v.collect())?)
                         })
                         .collect::<Result<_>>()?,
                     Some(GaussianPyramid::new(rho)?),
@@ -444,7 +439,10 @@ impl SvBssrdf {
     pub fn eval(&self, c: usize, xi: [f64; 2], xe: [f64; 2], scratch: &mut Scratch) -> f64 {
         let (dx, dy) = (xe[0] - xi[0], xe[1] - xi[1]);
         let d = (dx * dx + dy * dy).sqrt();
-        let (ai, ae) = (self.albedo_at(c, xi[0], xi[1]), self.albedo_at(c, xe[0], xe[1]));
+        let (ai, ae) = (
+            self.albedo_at(c, xi[0], xi[1]),
+            self.albedo_at(c, xe[0], xe[1]),
+        );
         let (ri, re) = (self.density_at(xi[0], xi[1]), self.density_at(xe[0], xe[1]));
         let b = &*self.basis;
         match self.method {
@@ -483,7 +481,13 @@ impl SvBssrdf {
             [1.0, 0.0]
         };
         let frame = Frame { xi, axis };
-        self.kernel(VertexClass::All, d, 0.5 * (ai + ae), rho0, &mut scratch.kernel);
+        self.kernel(
+            VertexClass::All,
+            d,
+            0.5 * (ai + ae),
+            rho0,
+            &mut scratch.kernel,
+        );
         let (mut alpha_t, mut rho_bar) = self.aggregate(c, &frame, &scratch.kernel);
         if self.variant.two_pass {
             self.kernel(VertexClass::All, d, alpha_t, rho_bar, &mut scratch.kernel);
@@ -839,8 +843,14 @@ mod tests {
         // The lane-parallel evaluation is the scalar one.
         for (r, alpha) in [(0.0, 0.5), (0.3, 0.99), (4.0, 0.2), (40.0, 1.0), (1.0, 0.0)] {
             let (s, m) = t.parts(r, alpha);
-            let (s0, m0) = (t.single_exitance(r), t.multi_over_alpha2(r.max(R_MIN), alpha));
-            assert!((s - s0).abs() <= 1e-14 * s0 && (m - m0).abs() <= 1e-14 * m0.max(1e-300), "{r} {alpha}");
+            let (s0, m0) = (
+                t.single_exitance(r),
+                t.multi_over_alpha2(r.max(R_MIN), alpha),
+            );
+            assert!(
+                (s - s0).abs() <= 1e-14 * s0 && (m - m0).abs() <= 1e-14 * m0.max(1e-300),
+                "{r} {alpha}"
+            );
         }
         // Single scattering is exact.
         let r = 0.7;
@@ -880,7 +890,11 @@ mod tests {
                 density.clone(),
             )
             .unwrap();
-            for (xi, xe) in [([0.1, 0.2], [2.3, -1.1]), ([-5.0, 5.5], [-5.6, 7.0]), ([1.0, 1.0], [1.0, 1.0])] {
+            for (xi, xe) in [
+                ([0.1, 0.2], [2.3, -1.1]),
+                ([-5.0, 5.5], [-5.6, 7.0]),
+                ([1.0, 1.0], [1.0, 1.0]),
+            ] {
                 let d = ((xe[0] - xi[0]) as f64).hypot(xe[1] - xi[1]);
                 let rho0 = 0.5 * (density.at(xi[0], xi[1]) + density.at(xe[0], xe[1]));
                 let (a_rows, r_rows) = sv.ellipse_average(0, xi, xe, d, rho0);
@@ -888,7 +902,11 @@ mod tests {
                 let a = 0.5 * d + 1.0 / rho0;
                 let b = (a * a - 0.25 * d * d).sqrt();
                 let c = [0.5 * (xi[0] + xe[0]), 0.5 * (xi[1] + xe[1])];
-                let u = if d > 0.0 { [(xe[0] - xi[0]) / d, (xe[1] - xi[1]) / d] } else { [1.0, 0.0] };
+                let u = if d > 0.0 {
+                    [(xe[0] - xi[0]) / d, (xe[1] - xi[1]) / d]
+                } else {
+                    [1.0, 0.0]
+                };
                 let h = 0.25 / 16.0;
                 let (mut ra, mut r, mut n) = (0.0, 0.0, 0.0);
                 let m = (a / h).ceil() as i64;
@@ -906,7 +924,11 @@ mod tests {
                     }
                 }
                 assert!((a_rows - ra / r).abs() < 0.01, "{a_rows} vs {}", ra / r);
-                assert!((r_rows / (r / n) - 1.0).abs() < 0.01, "{r_rows} vs {}", r / n);
+                assert!(
+                    (r_rows / (r / n) - 1.0).abs() < 0.01,
+                    "{r_rows} vs {}",
+                    r / n
+                );
             }
         }
     }
@@ -914,17 +936,37 @@ mod tests {
     #[test]
     fn split_form_stays_bounded_as_albedos_vanish() {
         let (_, t) = basis();
-        let meta = Arc::new(MetaModelFile::load(std::path::Path::new("data/profiles/metamodel.json")).unwrap());
+        let meta = Arc::new(
+            MetaModelFile::load(std::path::Path::new("data/profiles/metamodel.json")).unwrap(),
+        );
         for eps in [0.0, 1e-300, 1e-12, 1e-6, 1e-3] {
             // A map of ε with one bright texel far away, and a map of ε only.
             let mut v = vec![eps; 16 * 16];
             v[0] = 0.9;
-            for map in [TexelMap::new(16, 16, 0.5, v).unwrap(), TexelMap::new(1, 1, 0.5, vec![eps]).unwrap()] {
+            for map in [
+                TexelMap::new(16, 16, 0.5, v).unwrap(),
+                TexelMap::new(1, 1, 0.5, vec![eps]).unwrap(),
+            ] {
                 for method in [Method::Manual, Method::Learned] {
-                    for variant in [Variant::default(), Variant { plain: true, vertex_kernels: true, two_pass: true }] {
+                    for variant in [
+                        Variant::default(),
+                        Variant {
+                            plain: true,
+                            vertex_kernels: true,
+                            two_pass: true,
+                        },
+                    ] {
                         // A 1 × 1 density map under a 16 × 16 albedo: resampled.
                         let rho = Density::Map(TexelMap::new(1, 1, 0.5, vec![1.0]).unwrap());
-                        let sv = SvBssrdf::new(method, variant, t.clone(), Some(meta.clone()), vec![map.clone()], rho).unwrap();
+                        let sv = SvBssrdf::new(
+                            method,
+                            variant,
+                            t.clone(),
+                            Some(meta.clone()),
+                            vec![map.clone()],
+                            rho,
+                        )
+                        .unwrap();
                         for d in [0.0, 0.3, 3.0] {
                             let s = sv.eval(0, [0.5, 0.5], [0.5 + d, 0.5], &mut Scratch::default());
                             assert!(s.is_finite() && s >= 0.0, "{eps} {d}: {s}");
@@ -939,7 +981,15 @@ mod tests {
             v[0] = 0.9;
             let map = TexelMap::new(16, 16, 0.5, v).unwrap();
             for method in [Method::Manual, Method::Learned] {
-                let sv = SvBssrdf::new(method, Variant::default(), t.clone(), Some(meta.clone()), vec![map.clone()], Density::Constant(1.0)).unwrap();
+                let sv = SvBssrdf::new(
+                    method,
+                    Variant::default(),
+                    t.clone(),
+                    Some(meta.clone()),
+                    vec![map.clone()],
+                    Density::Constant(1.0),
+                )
+                .unwrap();
                 let s = sv.eval(0, [-3.0, 3.0], [-2.0, 3.5], &mut Scratch::default());
                 assert!(s.is_finite() && s >= 0.0, "{eps}: {s}");
             }
