@@ -111,7 +111,10 @@ def die(msg):
 
 
 def load_reference(directory, tag):
-    with open(os.path.join(directory, "render.json")) as f:
+    path = os.path.join(directory, "render.json")
+    if not os.path.exists(path):
+        die(f"{path} is missing (the --out folder of `svkernel render --method reference`)")
+    with open(path) as f:
         meta = json.load(f)
     if tag is None:
         passes = meta.get("passes") or [{"tag": "main"}]
