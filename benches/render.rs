@@ -124,7 +124,13 @@ fn walks(c: &mut Criterion) {
         n,
         0.05,
         (0..n * n)
-            .map(|k| if ((k % n) / 10) % 2 == 0 { 0.3 } else { 0.95 })
+            .map(|k| {
+                if ((k % n) / 10).is_multiple_of(2) {
+                    0.3
+                } else {
+                    0.95
+                }
+            })
             .collect(),
     )
     .expect("map");

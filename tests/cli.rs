@@ -247,3 +247,101 @@ fn kernel_shards_merge_to_the_unsharded_result() {
     assert!(!o.status.success() && err.contains("--distances"), "{err}");
     assert!(!bad.exists());
 }
+
+/// `render`: the reference rendered in two shards, merged with `merge` and
+/// fed back with `--reference-tally` gives bitwise the unsharded images;
+/// bad input fails cleanly without an output directory.
+#[test]
+fn render_reference_shards_merge_and_bad_input() {
+    let d = tmpdir("render");
+    let scene = d.join("s.toml");
+    std::fs::write(
+        &scene,
+        "texel = 0.25\nalbedo = { pattern = \"checker\", values = [0.3, 0.9], cell = 0.5 }\n\
+         [light]\nradius = 1.0\n[image]\nresolution = 8\nhalf_width = 2.0\n",
+    )
+    .unwrap();
+    let render = |args: &[&str], out: &Path| {
+        let o = bin()
+            .arg("render")
+            .arg(&scene)
+            .args(args)
+            .arg("--out")
+            .arg(out)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    };
+    let common = ["--method", "reference", "--paths", "1e5"];
+    render(&common, &d.join("full"));
+    for k in 0..2 {
+        let shard = format!("{k}/2");
+        let mut args = common.to_vec();
+        args.extend(["--shard", &shard]);
+        render(&args, &d.join(format!("s{k}")));
+    }
+    let parts: Vec<PathBuf> = (0..2)
+        .map(|k| d.join(format!("s{k}/main/reference.tally.json")))
+        .collect();
+    merge_ok(&parts, &d.join("merged.json"));
+    let merged = d.join("merged.json");
+    let mut args = common.to_vec();
+    args.extend(["--reference-tally", merged.to_str().unwrap()]);
+    render(&args, &d.join("again"));
+    let bytes = |p: PathBuf| std::fs::read(p).unwrap();
+    for f in ["reference_mean.npy", "reference_stderr.npy"] {
+        assert_eq!(
+            bytes(d.join("full/main").join(f)),
+            bytes(d.join("again/main").join(f)),
+            "{f}"
+        );
+    }
+    let doc = json(&d.join("full/render.json"));
+    assert_eq!(doc["passes"][0]["methods"][0]["method"], "reference");
+    // The same shard twice is refused, naming the file.
+    let o = bin()
+        .arg("merge")
+        .args([&parts[0], &parts[0]])
+        .arg("--out")
+        .arg(d.join("bad.json"))
+        .output()
+        .unwrap();
+    assert!(!o.status.success() && !d.join("bad.json").exists());
+    // Unknown method and a malformed scene: non-zero, named, nothing written.
+    for (args, needle) in [
+        (vec!["--method", "pointy"], "--method"),
+        (vec!["--spp", "0"], "--spp"),
+    ] {
+        let out = d.join("never");
+        let o = bin()
+            .arg("render")
+            .arg(&scene)
+            .args(&args)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && err.contains(needle), "{err}");
+        assert!(!out.exists());
+    }
+    std::fs::write(
+        &scene,
+        "texel = 0.25\nalbedo = { constant = 0.5 }\n[light]\nradius = -1.0\n",
+    )
+    .unwrap();
+    let o = bin()
+        .arg("render")
+        .arg(&scene)
+        .arg("--out")
+        .arg(d.join("never"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("s.toml") && err.contains("light.radius"),
+        "{err}"
+    );
+    assert!(!d.join("never").exists());
+    std::fs::remove_dir_all(&d).unwrap();
+}

@@ -101,7 +101,7 @@ impl Source {
     pub fn power(&self) -> f64 {
         match *self {
             Source::Pencil => 1.0,
-            Source::Diffuse { radius } if radius == 0.0 => 1.0,
+            Source::Diffuse { radius: 0.0 } => 1.0,
             Source::Collimated { radius } | Source::Diffuse { radius } => {
                 std::f64::consts::PI * radius * radius
             }

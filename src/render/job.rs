@@ -235,7 +235,7 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
         spp: opts.spp.unwrap_or(scene.samples),
         sampling: opts.sampling,
         seed: opts.seed,
-        observable: scene.observable.clone(),
+        observable: scene.observable,
     };
     let hash = scene_hash(scene)?;
     let mut out = Vec::new();
@@ -261,7 +261,7 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                         constant,
                         &scene.light,
                         view,
-                        scene.observable.clone(),
+                        scene.observable,
                         opts.seed,
                         paths,
                     )?;

@@ -481,7 +481,7 @@ static PHI_TABLE: std::sync::LazyLock<Vec<(f64, f64)>> = std::sync::LazyLock::ne
 /// (Φc(6.5) = 4e-11). A few nanoseconds against ~20 for `erfc`.
 #[inline]
 pub fn fast_phi(z: f64) -> f64 {
-    if !(z > -PHI_RANGE) {
+    if z.is_nan() || z <= -PHI_RANGE {
         return 0.0;
     }
     if z >= PHI_RANGE {

@@ -221,8 +221,11 @@ impl BasisTable {
         let n1 = &self.nodes[(i + 1) * 2 * k..(i + 2) * 2 * k];
         // Exponents ln A − B r; padding lanes at −∞ (e^−∞ = 0).
         let mut e = [f64::NEG_INFINITY; 12];
-        for j in 0..ks {
-            e[j] = self.single_ln_a[j] - self.single.b[j] * r;
+        for (e, (ln_a, b)) in e
+            .iter_mut()
+            .zip(self.single_ln_a.iter().zip(&self.single.b))
+        {
+            *e = ln_a - b * r;
         }
         for j in 0..k {
             let ln_a = n0[j] + f * (n1[j] - n0[j]);
@@ -891,11 +894,11 @@ mod tests {
             )
             .unwrap();
             for (xi, xe) in [
-                ([0.1, 0.2], [2.3, -1.1]),
+                ([0.1f64, 0.2], [2.3f64, -1.1]),
                 ([-5.0, 5.5], [-5.6, 7.0]),
                 ([1.0, 1.0], [1.0, 1.0]),
             ] {
-                let d = ((xe[0] - xi[0]) as f64).hypot(xe[1] - xi[1]);
+                let d = (xe[0] - xi[0]).hypot(xe[1] - xi[1]);
                 let rho0 = 0.5 * (density.at(xi[0], xi[1]) + density.at(xe[0], xe[1]));
                 let (a_rows, r_rows) = sv.ellipse_average(0, xi, xe, d, rho0);
                 // Brute force: a grid of spacing τ/16 over the bounding box.
