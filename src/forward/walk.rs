@@ -171,6 +171,39 @@ fn wall(
     })
 }
 
+/// Protocol step 3 at a real collision at `p`: absorbed if b ≥ α·2³²
+/// (`Some(Absorbed)`), else a scattering vertex (counted, `visit`ed with the
+/// arrival direction; `Some(Truncated)` at `max_events`) that turns `w` by
+/// the HG cos θ from `u_hg` and the azimuth φ = 2π(b + ½)/t (b is uniform
+/// below the local threshold t). `None`: the walk goes on.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn collide<A: AlbedoField>(
+    albedo: &A,
+    g: f64,
+    p: Vec3,
+    w: &mut Vec3,
+    b: u32,
+    u_hg: f64,
+    n: &mut u32,
+    max_events: u32,
+    visit: &mut impl FnMut(Vec3, Vec3),
+) -> Option<Fate> {
+    let alpha_threshold = albedo.threshold(p[0], p[1]);
+    if (b as u64) >= alpha_threshold {
+        return Some(Fate::Absorbed);
+    }
+    *n += 1;
+    visit(p, *w);
+    if *n >= max_events {
+        return Some(Fate::Truncated);
+    }
+    let cos_theta = sample_hg_cos(g, u_hg);
+    let phi = 2.0 * PI * (b as f64 + 0.5) / alpha_threshold as f64;
+    *w = rotate_direction(*w, cos_theta, phi);
+    None
+}
+
 /// Walks one launched path to its end; returns the fate and the number of
 /// scattering events.
 pub fn walk(medium: &Medium, max_events: u32, start: Launched, rng: &mut PathRng) -> (Fate, u32) {
@@ -213,18 +246,20 @@ pub fn walk_general<A: AlbedoField>(
         y += w[1] * s;
         z += w[2] * s;
         // ---- collision: absorb or scatter -----------------------------------
-        let alpha_threshold = albedo.threshold(x, y);
-        if (b as u64) >= alpha_threshold {
-            return (Fate::Absorbed, n);
+        let p = [x, y, z];
+        if let Some(end) = collide(
+            albedo,
+            medium.g,
+            p,
+            &mut w,
+            b,
+            unit_f64(c),
+            &mut n,
+            max_events,
+            &mut visit,
+        ) {
+            return (end, n);
         }
-        n += 1;
-        visit([x, y, z], w);
-        if n >= max_events {
-            return (Fate::Truncated, n);
-        }
-        let cos_theta = sample_hg_cos(medium.g, unit_f64(c));
-        let phi = 2.0 * PI * (b as f64 + 0.5) / alpha_threshold as f64;
-        w = rotate_direction(w, cos_theta, phi);
     }
 }
 
@@ -286,18 +321,20 @@ pub fn walk_delta<A: AlbedoField, D: DensityField>(
         if uc >= p {
             continue; // null collision
         }
-        let alpha_threshold = albedo.threshold(x, y);
-        if (b as u64) >= alpha_threshold {
-            return (Fate::Absorbed, n);
+        // u_c/p is again uniform on [0, 1) at a real collision.
+        if let Some(end) = collide(
+            albedo,
+            medium.g,
+            [x, y, z],
+            &mut w,
+            b,
+            uc / p,
+            &mut n,
+            max_events,
+            &mut visit,
+        ) {
+            return (end, n);
         }
-        n += 1;
-        visit([x, y, z], w);
-        if n >= max_events {
-            return (Fate::Truncated, n);
-        }
-        let cos_theta = sample_hg_cos(medium.g, uc / p);
-        let phi = 2.0 * PI * (b as f64 + 0.5) / alpha_threshold as f64;
-        w = rotate_direction(w, cos_theta, phi);
     }
 }
 
@@ -410,18 +447,20 @@ pub fn walk_tracked<A: AlbedoField>(
         x += w[0] * s;
         y += w[1] * s;
         z += w[2] * s;
-        let alpha_threshold = albedo.threshold(x, y);
-        if (b as u64) >= alpha_threshold {
-            return (Fate::Absorbed, n);
+        let p = [x, y, z];
+        if let Some(end) = collide(
+            albedo,
+            medium.g,
+            p,
+            &mut w,
+            b,
+            unit_f64(c),
+            &mut n,
+            max_events,
+            &mut visit,
+        ) {
+            return (end, n);
         }
-        n += 1;
-        visit([x, y, z], w);
-        if n >= max_events {
-            return (Fate::Truncated, n);
-        }
-        let cos_theta = sample_hg_cos(medium.g, unit_f64(c));
-        let phi = 2.0 * PI * (b as f64 + 0.5) / alpha_threshold as f64;
-        w = rotate_direction(w, cos_theta, phi);
     }
 }
 
