@@ -35,7 +35,12 @@
 //!   list of three-element lists (one per value);
 //! * `{ channels = [map, map, map] }` — R, G, B from three grey maps;
 //! * `{ file = "path.npy" }` — an `(ny, nx)` or `(ny, nx, 3)` float64 array
-//!   (row 0 is +y, column 0 is −x), relative to the scene file.
+//!   (row 0 is +y, column 0 is −x), relative to the scene file;
+//!   `{ file = "path.exr" }` — the first layer's R, G, B (or Y, or its only
+//!   channel), linear; `{ file = "path.png", transfer = "srgb" | "linear" }`
+//!   — 8- or 16-bit grey or RGB (alpha ignored), values v/(2^bits − 1), the
+//!   transfer stated explicitly (`srgb` decodes IEC 61966-2-1 to linear).
+//!   Image row 0 is +y, column 0 is −x, one pixel per texel.
 //!
 //! Every map is sampled on a texel grid of `size` = `[nx, ny]` texels
 //! (`size` key of the map table; default: enough texels of size τ to cover the
@@ -165,6 +170,7 @@ struct RawMap {
     radius: Option<f64>,
     seed: Option<u64>,
     file: Option<PathBuf>,
+    transfer: Option<String>,
     channels: Option<Vec<RawMap>>,
     size: Option<[usize; 2]>,
 }
@@ -471,7 +477,40 @@ fn build_map(
             .collect();
     }
     if let Some(file) = &raw.file {
-        return load_npy(&dir.join(file), texel).map_err(|e| match e {
+        let ext = file
+            .extension()
+            .map(|e| e.to_string_lossy().to_lowercase())
+            .unwrap_or_default();
+        let transfer = raw.transfer.as_deref();
+        match (ext.as_str(), transfer) {
+            ("png", Some("srgb" | "linear")) | ("npy" | "exr", None | Some("linear")) => {}
+            ("png", t) => {
+                return Err(bad(
+                    ".transfer",
+                    format!("{t:?}: a PNG map needs transfer = \"srgb\" or \"linear\""),
+                ));
+            }
+            (_, Some(t)) => {
+                return Err(bad(
+                    ".transfer",
+                    format!("'{t}': .npy and .exr maps hold linear values"),
+                ));
+            }
+            _ => {}
+        }
+        let path = dir.join(file);
+        let loaded = match ext.as_str() {
+            "npy" => load_npy(&path, texel),
+            "exr" => load_exr(&path, texel),
+            "png" => load_png(&path, texel, transfer == Some("srgb")),
+            _ => {
+                return Err(bad(
+                    ".file",
+                    format!("{}: expected a .npy, .exr or .png file", file.display()),
+                ));
+            }
+        };
+        return loaded.map_err(|e| match e {
             Error::Format { .. } | Error::Io { .. } => e,
             other => bad(".file", other.to_string()),
         });
@@ -581,6 +620,87 @@ fn complex_pattern(seed: u64, x: f64, y: f64) -> f64 {
     on as u8 as f64
 }
 
+/// Loads the first layer of an OpenEXR file: channels R, G, B (3 maps), or
+/// Y, or the only channel (1 map); row 0 of the image is +y.
+fn load_exr(file: &Path, texel: f64) -> Result<Vec<TexelMap>> {
+    let img = exr::prelude::read_all_flat_layers_from_file(file)
+        .map_err(|e| Error::format(file, "(exr)", e))?;
+    let layer = img
+        .layer_data
+        .first()
+        .ok_or_else(|| Error::format(file, "(exr)", "no layer"))?;
+    let (nx, ny) = (layer.size.0, layer.size.1);
+    let list = &layer.channel_data.list;
+    let find = |n: &str| list.iter().find(|c| c.name.to_string() == n);
+    let chosen: Vec<_> = match (find("R"), find("G"), find("B"), find("Y")) {
+        (Some(r), Some(g), Some(b), _) => vec![r, g, b],
+        (_, _, _, Some(y)) => vec![y],
+        _ if list.len() == 1 => vec![&list[0]],
+        _ => {
+            return Err(Error::format(
+                file,
+                "(channels)",
+                "expected R, G, B or Y or a single channel",
+            ));
+        }
+    };
+    chosen
+        .iter()
+        .map(|c| {
+            let v = (0..nx * ny)
+                .map(|k| c.sample_data.value_by_flat_index(k).to_f32() as f64)
+                .collect();
+            TexelMap::new(nx, ny, texel, v)
+        })
+        .collect()
+}
+
+/// Loads an 8- or 16-bit PNG (grey or RGB, alpha ignored) as 1 or 3 maps
+/// with values v/(2^bits − 1), decoded from sRGB to linear if `srgb`
+/// (IEC 61966-2-1); row 0 of the image is +y.
+fn load_png(file: &Path, texel: f64, srgb: bool) -> Result<Vec<TexelMap>> {
+    let bad = |e: &dyn std::fmt::Display| Error::format(file, "(png)", e.to_string());
+    let f = std::fs::File::open(file).map_err(|e| Error::io(file, e))?;
+    let mut dec = png::Decoder::new(std::io::BufReader::new(f));
+    dec.set_transformations(png::Transformations::EXPAND);
+    let mut reader = dec.read_info().map_err(|e| bad(&e))?;
+    let mut buf = vec![0; reader.output_buffer_size()];
+    let info = reader.next_frame(&mut buf).map_err(|e| bad(&e))?;
+    let (nx, ny) = (info.width as usize, info.height as usize);
+    let (colours, alpha) = match info.color_type {
+        png::ColorType::Grayscale => (1, 0),
+        png::ColorType::GrayscaleAlpha => (1, 1),
+        png::ColorType::Rgb => (3, 0),
+        png::ColorType::Rgba => (3, 1),
+        png::ColorType::Indexed => return Err(bad(&"indexed colour left unexpanded")),
+    };
+    let wide = info.bit_depth == png::BitDepth::Sixteen;
+    let max = if wide { 65535.0 } else { 255.0 };
+    let stride = colours + alpha;
+    let sample = |k: usize| -> f64 {
+        let v = if wide {
+            u16::from_be_bytes([buf[2 * k], buf[2 * k + 1]]) as f64
+        } else {
+            buf[k] as f64
+        } / max;
+        if srgb {
+            if v <= 0.040_45 {
+                v / 12.92
+            } else {
+                ((v + 0.055) / 1.055).powf(2.4)
+            }
+        } else {
+            v
+        }
+    };
+    (0..colours)
+        .map(|c| {
+            let v = (0..nx * ny).map(|p| sample(p * stride + c)).collect();
+            TexelMap::new(nx, ny, texel, v)
+        })
+        .collect()
+}
+
 /// Loads an `(ny, nx)` or `(ny, nx, 3)` float64 `.npy` as 1 or 3 channels.
 fn load_npy(file: &Path, texel: f64) -> Result<Vec<TexelMap>> {
     use ndarray::ArrayD;
@@ -618,6 +738,67 @@ mod tests {
         let p = dir.join(name);
         std::fs::write(&p, text).unwrap();
         p
+    }
+
+    #[test]
+    fn exr_and_png_maps() {
+        use crate::render::estimator::Image;
+        let dir = std::env::temp_dir().join(format!("svk-scene-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        // EXR: 3 × 3 RGB, channel c of pixel k holds (c + 1)·k/100.
+        let mut img = Image::zeros(3, 3);
+        for c in 0..3 {
+            for k in 0..9 {
+                img.mean[c * 9 + k] = (c + 1) as f64 * k as f64 / 100.0;
+            }
+        }
+        crate::render::output::write_exr(&dir.join("m.exr"), &img, "t").unwrap();
+        let p = write("exr.toml", "texel = 1.0\nalbedo = { file = \"m.exr\" }\n");
+        let s = Scene::load(&p).unwrap();
+        assert_eq!(s.albedo.len(), 3);
+        assert!((s.albedo[1].values[5] - 0.10).abs() < 1e-6);
+        // PNG: 2 × 2 grey, values 0, 128, 255, 64 (row 0 first).
+        crate::render::output::write_png_bytes(&dir.join("m.png"), 2, false, &[0, 128, 255, 64])
+            .unwrap();
+        let p = write(
+            "png.toml",
+            "texel = 1.0\nalbedo = { file = \"m.png\", transfer = \"linear\" }\n",
+        );
+        let s = Scene::load(&p).unwrap();
+        assert_eq!(
+            s.albedo[0].values,
+            vec![0.0, 128.0 / 255.0, 1.0, 64.0 / 255.0]
+        );
+        let p = write(
+            "png2.toml",
+            "texel = 1.0\nalbedo = { file = \"m.png\", transfer = \"srgb\" }\n",
+        );
+        let v = Scene::load(&p).unwrap().albedo[0].values[1];
+        assert!((v - 0.2158605).abs() < 1e-6, "{v}");
+        // A PNG without its transfer, or a transfer on an EXR: refused, naming the key.
+        let p = write("png3.toml", "texel = 1.0\nalbedo = { file = \"m.png\" }\n");
+        let e = Scene::load(&p).unwrap_err().to_string();
+        assert!(
+            e.contains("png3.toml") && e.contains("albedo.transfer"),
+            "{e}"
+        );
+        let p = write(
+            "exr2.toml",
+            "texel = 1.0\nalbedo = { file = \"m.exr\", transfer = \"srgb\" }\n",
+        );
+        assert!(
+            Scene::load(&p)
+                .unwrap_err()
+                .to_string()
+                .contains("albedo.transfer")
+        );
+        let p = write("bmp.toml", "texel = 1.0\nalbedo = { file = \"m.bmp\" }\n");
+        assert!(
+            Scene::load(&p)
+                .unwrap_err()
+                .to_string()
+                .contains("albedo.file")
+        );
     }
 
     #[test]
