@@ -2,7 +2,8 @@
 //! one profile of the default medium, checks R_d against the adding-doubling
 //! oracle and plots p(r); then compares the shipped basis BSSRDF with that
 //! simulation and prints the learned aggregation kernel next to the manual one
-//! (the rendering comparison comes with the renderer).
+//! and renders the `stripes` and `checker` scenes with every method and a
+//! quick reference ([`render_scenes`]; the full comparison report is issue 7).
 
 use crate::error::Result;
 use crate::forward::medium::{Medium, Source};
@@ -72,4 +73,45 @@ pub fn run(out: &Path, paths: u64, progress: bool) -> Result<DemoReport> {
             .gmm,
         manual: crate::metamodel::kernel::manual_kernel(1.0),
     })
+}
+
+/// The scenes the demo renders, the reference paths and samples per pixel.
+pub const DEMO_SCENES: [&str; 2] = ["scenes/stripes.toml", "scenes/checker.toml"];
+const DEMO_REFERENCE_PATHS: u64 = 4_000_000;
+const DEMO_SPP: u32 = 64;
+
+/// Renders [`DEMO_SCENES`] with the reference and every method (MIS,
+/// 64 spp, 4e6 reference paths) into `out/<scene>/`; returns each scene's
+/// name, passes and `render.json` sidecar.
+pub fn render_scenes(
+    out: &Path,
+    progress: bool,
+) -> Result<Vec<(String, Vec<crate::render::job::Pass>, serde_json::Value)>> {
+    use crate::render::job::{RenderOptions, render_scene, write_outputs};
+    let mut done = Vec::new();
+    for path in DEMO_SCENES {
+        let scene = crate::render::scene::Scene::load(Path::new(path))?;
+        let opts = RenderOptions {
+            targets: Vec::new(),
+            spp: Some(DEMO_SPP),
+            sampling: crate::render::estimator::Sampling::Mis,
+            variant: Default::default(),
+            seed: 1,
+            reference_paths: Some(DEMO_REFERENCE_PATHS),
+            basis: SHIPPED_BASIS.into(),
+            basis_diffuse: "data/profiles/basis_diffuse.json".into(),
+            meta: SHIPPED_META.into(),
+            out: out.join(&scene.name),
+            shard: None,
+            run: RunOptions {
+                progress,
+                ..Default::default()
+            },
+            reference_tallies: Vec::new(),
+        };
+        let passes = render_scene(&scene, &opts)?;
+        let doc = write_outputs(&scene, &opts, &passes)?;
+        done.push((scene.name.clone(), passes, doc));
+    }
+    Ok(done)
 }

@@ -589,6 +589,33 @@ fn demo(out: PathBuf, paths: u64) -> Result<()> {
         println!("  {name}: {}", parts.join(" | "));
     }
     println!("wrote {} and {}", r.json.display(), r.plot.display());
+    println!(
+        "rendering {} (64 spp MIS, reference 4e6 paths, 64² pixels):",
+        svkernel::demo::DEMO_SCENES.join(", ")
+    );
+    let scenes = svkernel::demo::render_scenes(&out, std::io::stderr().is_terminal())?;
+    println!(
+        "  {:<8} {:<11} {:>9} {:>10} {:>10}",
+        "scene", "method", "time [s]", "rel RMSE", "rel bias"
+    );
+    for (name, _, doc) in &scenes {
+        for m in doc["passes"][0]["methods"].as_array().into_iter().flatten() {
+            let f = |k: &str| {
+                m["metrics"][k]
+                    .as_f64()
+                    .map_or("—".to_string(), |v| format!("{v:.4}"))
+            };
+            println!(
+                "  {:<8} {:<11} {:>9.2} {:>10} {:>10}",
+                name,
+                m["method"].as_str().unwrap_or(""),
+                m["wall_s"].as_f64().unwrap_or(0.0),
+                f("rel_rmse"),
+                f("rel_bias")
+            );
+        }
+        println!("  wrote {}/{name}/main/row.png", out.display());
+    }
     Ok(())
 }
 
