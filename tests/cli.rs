@@ -345,3 +345,30 @@ fn render_reference_shards_merge_and_bad_input() {
     assert!(!d.join("never").exists());
     std::fs::remove_dir_all(&d).unwrap();
 }
+
+/// The README's first command end to end (fewer profile paths): the
+/// profile, the plots, and both demo scenes rendered with every method.
+#[test]
+fn demo_runs_end_to_end() {
+    let d = tmpdir("demo");
+    let o = bin()
+        .args(["demo", "--paths", "2e5", "--out"])
+        .arg(&d)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(d.join("profile.png").exists() && d.join("profile.json").exists());
+    for scene in ["stripes", "checker"] {
+        assert!(d.join(scene).join("main/row.png").exists(), "{scene}");
+        let doc = json(&d.join(scene).join("render.json"));
+        let methods = doc["passes"][0]["methods"].as_array().unwrap();
+        assert_eq!(methods.len(), 7);
+        for m in &methods[1..] {
+            let e = m["metrics"]["rel_rmse"].as_f64().unwrap();
+            assert!(e.is_finite() && e >= 0.0, "{scene}: {m}");
+        }
+        assert!(stdout.contains(&format!("{scene}  learned")), "{stdout}");
+    }
+    std::fs::remove_dir_all(&d).unwrap();
+}
