@@ -78,6 +78,27 @@ enum Command {
     },
     /// Render a scene with every method and the brute-force reference.
     Render(RenderArgs),
+    /// Error against wall time of every method and of the reference, as
+    /// their budgets grow, against a high-budget reference (the truth).
+    Compare {
+        scene: PathBuf,
+        /// Paths of the truth (independent seed).
+        #[arg(long, default_value = "2e7", value_parser = parse_count)]
+        truth_paths: u64,
+        /// Samples per pixel of the model methods, one render each.
+        #[arg(long, value_delimiter = ',', default_value = "4,16,64,256")]
+        spp_list: Vec<u32>,
+        /// Reference paths, one render each.
+        #[arg(long, value_delimiter = ',', default_value = "1e5,1e6,1e7", value_parser = parse_count)]
+        paths_list: Vec<u64>,
+        /// uniform | importance | mis
+        #[arg(long, default_value = "mis")]
+        sampling: String,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        #[arg(long, default_value = "out/compare")]
+        out: PathBuf,
+    },
     /// End-to-end demo on shipped data.
     Demo {
         #[arg(long, default_value = "out/demo")]
@@ -866,6 +887,72 @@ fn profile_query(albedo: f64, radii: &[f64], model: &std::path::Path) -> Result<
     Ok(())
 }
 
+/// `svkernel compare`: error-vs-time curves (JSON, PNG, table).
+fn compare(
+    scene: &std::path::Path,
+    truth_paths: u64,
+    spps: &[u32],
+    paths: &[u64],
+    sampling: &str,
+    seed: u64,
+    out: PathBuf,
+) -> Result<()> {
+    use svkernel::render::compare::{error_vs_time, plot_curves};
+    use svkernel::render::estimator::Sampling;
+    use svkernel::render::job::RenderOptions;
+    let scene = svkernel::render::scene::Scene::load(scene)?;
+    let opts = RenderOptions {
+        targets: Vec::new(),
+        spp: None,
+        sampling: Sampling::parse(sampling)?,
+        variant: Default::default(),
+        seed,
+        reference_paths: None,
+        basis: DEFAULT_BASIS.into(),
+        basis_diffuse: DEFAULT_BASIS_DIFFUSE.into(),
+        meta: DEFAULT_META.into(),
+        out: out.clone(),
+        shard: None,
+        run: RunOptions {
+            progress: std::io::stderr().is_terminal(),
+            ..Default::default()
+        },
+        reference_tallies: Vec::new(),
+    };
+    let (curves, truth_s) = error_vs_time(&scene, &opts, truth_paths, spps, paths)?;
+    let doc = serde_json::json!({
+        "format": "svkernel.error_time",
+        "version": 1,
+        "scene": scene.path,
+        "truth_paths": truth_paths,
+        "truth_wall_s": truth_s,
+        "sampling": sampling,
+        "error": "relative RMSE against the truth, the truth's variance subtracted, the method's noise included",
+        "curves": curves,
+        "provenance": Provenance::current(),
+    });
+    svkernel::io::write_json_atomic(&out.join("error_time.json"), &doc)?;
+    plot_curves(&out.join("error_time.png"), &scene.name, &curves)?;
+    println!(
+        "scene {} (truth: {truth_paths} paths, {truth_s:.1} s)",
+        scene.name
+    );
+    println!(
+        "  {:<11} {:>10} {:>9} {:>10}",
+        "method", "budget", "time [s]", "rel RMSE"
+    );
+    for c in &curves {
+        for p in &c.points {
+            println!(
+                "  {:<11} {:>10} {:>9.2} {:>10.4}",
+                c.method, p.budget, p.wall_s, p.rel_rmse
+            );
+        }
+    }
+    println!("wrote {}/error_time.json and error_time.png", out.display());
+    Ok(())
+}
+
 /// `svkernel render`.
 fn render(a: RenderArgs) -> Result<()> {
     use svkernel::render::estimator::Sampling;
@@ -956,6 +1043,23 @@ fn main() -> std::process::ExitCode {
         Command::Simulate(Simulate::Kernels(a)) => simulate_kernels(a),
         Command::Merge { inputs, out } => merge(inputs, out),
         Command::Render(a) => render(a),
+        Command::Compare {
+            scene,
+            truth_paths,
+            spp_list,
+            paths_list,
+            sampling,
+            seed,
+            out,
+        } => compare(
+            &scene,
+            truth_paths,
+            &spp_list,
+            &paths_list,
+            &sampling,
+            seed,
+            out,
+        ),
         Command::Demo { out, paths } => demo(out, paths),
         Command::Fit(f) => fit(f),
         Command::Profile {

@@ -372,3 +372,47 @@ fn demo_runs_end_to_end() {
     }
     std::fs::remove_dir_all(&d).unwrap();
 }
+
+/// `compare`: the error-vs-time curves of a small scene; the reference's
+/// error falls with its budget, and every model method has a curve.
+#[test]
+fn compare_writes_error_time_curves() {
+    let d = tmpdir("compare");
+    let scene = d.join("s.toml");
+    std::fs::write(
+        &scene,
+        "texel = 0.25\nalbedo = { pattern = \"stripes\", values = [0.3, 0.95], width = 0.5 }\n\
+         methods = [\"point\", \"learned\"]\n[light]\nradius = 1.0\n[image]\nresolution = 8\nhalf_width = 2.0\n",
+    )
+    .unwrap();
+    let o = bin()
+        .arg("compare")
+        .arg(&scene)
+        .args([
+            "--truth-paths",
+            "2e6",
+            "--spp-list",
+            "4,64",
+            "--paths-list",
+            "1e4,1e6",
+            "--out",
+        ])
+        .arg(&d)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let doc = json(&d.join("error_time.json"));
+    let curves = doc["curves"].as_array().unwrap();
+    let names: Vec<&str> = curves
+        .iter()
+        .map(|c| c["method"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["reference", "point", "learned"]);
+    let e = |c: usize, k: usize| curves[c]["points"][k]["rel_rmse"].as_f64().unwrap();
+    assert!(
+        e(0, 1) < e(0, 0),
+        "reference error must fall with 100× the paths"
+    );
+    assert!(d.join("error_time.png").exists());
+    std::fs::remove_dir_all(&d).unwrap();
+}

@@ -1,8 +1,10 @@
 //! Rendering (design §3 step 4 and §4): scenes, the SV-BSSRDF of every
 //! method ([`svbssrdf`]) with O(1) aggregation ([`pyramid`]), one estimator
 //! for all of them ([`estimator`]), the brute-force reference
-//! ([`reference`]), image output ([`output`]) and the `render` job ([`job`]).
+//! ([`reference`]), image output ([`output`]), the `render` job ([`job`])
+//! and error against time ([`compare`]).
 
+pub mod compare;
 pub mod estimator;
 pub mod job;
 pub mod output;
