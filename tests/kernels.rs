@@ -343,6 +343,38 @@ fn delta_tracking_with_constant_density_is_the_plain_walk() {
     }
 }
 
+/// Exit probability and mean exit radius of `n` paths from `source`, each
+/// walked by `walk`, with their standard errors: (p, σ_p, r̄, σ_r̄).
+fn exit_stats(
+    n: u64,
+    seed: u64,
+    source: &Source,
+    walk: impl Fn(svkernel::forward::walk::Launched, &mut PathRng) -> Fate,
+) -> (f64, f64, f64, f64) {
+    let (mut exits, mut r_sum, mut r2_sum) = (0u64, 0.0, 0.0);
+    for path in 0..n {
+        let mut rng = PathRng::new(seed, path);
+        let Some(s) = launch(source, 1.5, &mut rng) else {
+            continue;
+        };
+        if let Fate::Exit { x, y } = walk(s, &mut rng) {
+            exits += 1;
+            let r = x.hypot(y);
+            r_sum += r;
+            r2_sum += r * r;
+        }
+    }
+    let p = exits as f64 / n as f64;
+    let mean_r = r_sum / exits as f64;
+    let var_r = r2_sum / exits as f64 - mean_r * mean_r;
+    (
+        p,
+        (p * (1.0 - p) / n as f64).sqrt(),
+        mean_r,
+        (var_r / exits as f64).sqrt(),
+    )
+}
+
 /// Null collisions are unbiased: a majorant four times the density (one far
 /// texel at 4ρ) leaves the exitance statistics unchanged.
 #[test]
@@ -356,31 +388,13 @@ fn null_collisions_do_not_bias_the_walk() {
     let density = DensityMap::new(TexelMap::new(3, 3, 1000.0, values).unwrap()).unwrap();
     let n = 400_000u64;
     let run = |delta: bool, seed: u64| {
-        let (mut exits, mut r_sum, mut r2_sum) = (0u64, 0.0, 0.0);
-        for path in 0..n {
-            let mut rng = PathRng::new(seed, path);
-            let s = launch(&Source::Pencil, 1.5, &mut rng).unwrap();
-            let (fate, _) = if delta {
-                walk_delta(&medium, &albedo, &density, 100_000, s, &mut rng, |_, _| {})
+        exit_stats(n, seed, &Source::Pencil, |s, rng| {
+            if delta {
+                walk_delta(&medium, &albedo, &density, 100_000, s, rng, |_, _| {}).0
             } else {
-                walk_general(&medium, &albedo, 100_000, s, &mut rng, |_, _| {})
-            };
-            if let Fate::Exit { x, y } = fate {
-                exits += 1;
-                let r = x.hypot(y);
-                r_sum += r;
-                r2_sum += r * r;
+                walk_general(&medium, &albedo, 100_000, s, rng, |_, _| {}).0
             }
-        }
-        let p = exits as f64 / n as f64;
-        let mean_r = r_sum / exits as f64;
-        let var_r = r2_sum / exits as f64 - mean_r * mean_r;
-        (
-            p,
-            (p * (1.0 - p) / n as f64).sqrt(),
-            mean_r,
-            (var_r / exits as f64).sqrt(),
-        )
+        })
     };
     let (p1, s1, r1, e1) = run(false, 1);
     let (p2, s2, r2, e2) = run(true, 2);
@@ -437,40 +451,15 @@ fn tracked_and_delta_walks_agree_on_a_density_checker() {
     let map = TexelMap::new(n_side, n_side, 0.5, values).unwrap();
     let delta_map = DensityMap::new(map.clone()).unwrap();
     let n = 200_000u64;
+    let source = Source::Collimated { radius: 1.0 };
     let stats = |tracked: bool, seed: u64| {
-        let (mut exits, mut r_sum, mut r2_sum) = (0u64, 0.0, 0.0);
-        for path in 0..n {
-            let mut rng = PathRng::new(seed, path);
-            let s = launch(&Source::Collimated { radius: 1.0 }, 1.5, &mut rng).unwrap();
-            let (fate, _) = if tracked {
-                walk_tracked(&medium, &albedo, &map, 100_000, s, &mut rng, |_, _| {})
+        exit_stats(n, seed, &source, |s, rng| {
+            if tracked {
+                walk_tracked(&medium, &albedo, &map, 100_000, s, rng, |_, _| {}).0
             } else {
-                walk_delta(
-                    &medium,
-                    &albedo,
-                    &delta_map,
-                    100_000,
-                    s,
-                    &mut rng,
-                    |_, _| {},
-                )
-            };
-            if let Fate::Exit { x, y } = fate {
-                exits += 1;
-                let r = x.hypot(y);
-                r_sum += r;
-                r2_sum += r * r;
+                walk_delta(&medium, &albedo, &delta_map, 100_000, s, rng, |_, _| {}).0
             }
-        }
-        let p = exits as f64 / n as f64;
-        let m = r_sum / exits as f64;
-        let v = r2_sum / exits as f64 - m * m;
-        (
-            p,
-            (p * (1.0 - p) / n as f64).sqrt(),
-            m,
-            (v / exits as f64).sqrt(),
-        )
+        })
     };
     let (p1, e1, m1, f1) = stats(true, 1);
     let (p2, e2, m2, f2) = stats(false, 2);
