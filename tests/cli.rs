@@ -416,3 +416,86 @@ fn compare_writes_error_time_curves() {
     assert!(d.join("error_time.png").exists());
     std::fs::remove_dir_all(&d).unwrap();
 }
+
+/// The cluster scripts (`tools/cluster/shard.sh` + `merge.sh`, the body of
+/// the Slurm array and Kubernetes indexed jobs) run locally as 3 shards:
+/// the merged profile and the merged reference tally equal the unsharded
+/// results bitwise.
+#[test]
+fn cluster_scripts_shard_and_merge_like_one_run() {
+    let d = tmpdir("cluster");
+    let script = |name: &str, args: &[&str], out: &Path| {
+        let o = Command::new("bash")
+            .arg(
+                Path::new(env!("CARGO_MANIFEST_DIR"))
+                    .join("tools/cluster")
+                    .join(name),
+            )
+            .args(args)
+            .env("SVKERNEL", env!("CARGO_BIN_EXE_svkernel"))
+            .env("OUT", out)
+            .stdout(Stdio::null())
+            .output()
+            .unwrap();
+        assert!(
+            o.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+    };
+    // Profiles.
+    let common = ["--albedo", "0.8", "--paths", "1e5", "--seed", "3"];
+    let full = d.join("full.json");
+    assert!(profile(&common, &full).status.success());
+    let out = d.join("profile");
+    for k in 0..3 {
+        let (k, n) = (k.to_string(), "3".to_string());
+        let mut args = vec![k.as_str(), n.as_str(), "profile"];
+        args.extend(common);
+        script("shard.sh", &args, &out);
+    }
+    script("merge.sh", &["profile"], &out);
+    let (a, b) = (json(&full), json(&out.join("merged.json")));
+    assert_eq!(a["tally"], b["tally"]);
+    assert_eq!(a["R_d"], b["R_d"]);
+    // A reference render.
+    let scene = d.join("s.toml");
+    std::fs::write(
+        &scene,
+        "texel = 0.25\nalbedo = { pattern = \"stripes\", values = [0.3, 0.9], width = 0.5 }\n\
+         [light]\nradius = 1.0\n[image]\nresolution = 8\nhalf_width = 2.0\n",
+    )
+    .unwrap();
+    let s = scene.to_str().unwrap();
+    let out = d.join("reference");
+    for k in 0..3 {
+        let k = k.to_string();
+        script(
+            "shard.sh",
+            &[&k, "3", "reference", s, "--paths", "1e5"],
+            &out,
+        );
+    }
+    script("merge.sh", &["reference"], &out);
+    let o = bin()
+        .args([
+            "render",
+            s,
+            "--method",
+            "reference",
+            "--paths",
+            "1e5",
+            "--out",
+        ])
+        .arg(d.join("full_ref"))
+        .output()
+        .unwrap();
+    assert!(o.status.success());
+    let (a, b) = (
+        json(&d.join("full_ref/main/reference.tally.json")),
+        json(&out.join("merged.json")),
+    );
+    assert_eq!(a["tally"], b["tally"]);
+    assert_eq!(a["key"], b["key"]);
+    std::fs::remove_dir_all(&d).unwrap();
+}
