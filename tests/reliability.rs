@@ -1,0 +1,294 @@
+//! Reliability sweep through the CLI (issue 7 §7): bad and extreme inputs
+//! give a clear error naming the file and the key, a non-zero exit, no
+//! panic, and no output left behind.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_svkernel"))
+}
+
+fn tmpdir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("svk-reliability-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// Runs `args`, expects failure without a panic, every needle in stderr,
+/// and `out` not created.
+fn fails(args: &[&str], needles: &[&str], out: &Path) {
+    let o = bin().args(args).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{args:?} succeeded");
+    assert_eq!(o.status.code(), Some(1), "{args:?}: {err}");
+    assert!(!err.contains("panicked"), "{args:?}: {err}");
+    for n in needles {
+        assert!(err.contains(n), "{args:?}: '{n}' not in: {err}");
+    }
+    assert!(!out.exists(), "{args:?} left {}", out.display());
+}
+
+#[test]
+fn bad_scenes_fail_cleanly_through_the_cli() {
+    let d = tmpdir("scenes");
+    let out = d.join("out");
+    let o = out.to_str().unwrap();
+    let npy = |name: &str, v: f64, shape: (usize, usize)| {
+        let arr = ndarray::Array2::from_elem(shape, v);
+        svkernel::io::write_npy_atomic(&d.join(name), &arr).unwrap();
+    };
+    npy("nan.npy", f64::NAN, (3, 3));
+    npy("neg.npy", -0.5, (3, 3));
+    npy("over.npy", 1.5, (3, 3));
+    npy("empty.npy", 0.5, (0, 3));
+    std::fs::write(d.join("junk.npy"), b"\x93NUMPY garbage").unwrap();
+    std::fs::write(d.join("junk.exr"), b"not an exr").unwrap();
+    std::fs::write(d.join("junk.png"), b"not a png").unwrap();
+    let cases: &[(&str, &str, &[&str])] = &[
+        (
+            "malformed",
+            "albedo = { constant = 0.5\n",
+            &["malformed.toml", "line"],
+        ),
+        (
+            "unknown-key",
+            "albedo = { constant = 0.5 }\ncolour = 1\n",
+            &["unknown-key.toml", "colour"],
+        ),
+        (
+            "unknown-map-key",
+            "albedo = { constant = 0.5, sheen = 1 }\n",
+            &["unknown-map-key.toml", "sheen"],
+        ),
+        (
+            "missing-albedo",
+            "texel = 0.1\n",
+            &["missing-albedo.toml", "albedo"],
+        ),
+        (
+            "missing-file",
+            "albedo = { file = \"nope.npy\" }\n",
+            &["nope.npy"],
+        ),
+        (
+            "nan",
+            "albedo = { file = \"nan.npy\" }\n",
+            &["nan.toml", "albedo"],
+        ),
+        (
+            "negative",
+            "albedo = { file = \"neg.npy\" }\n",
+            &["negative.toml", "albedo"],
+        ),
+        (
+            "over",
+            "albedo = { file = \"over.npy\" }\n",
+            &["over.toml", "albedo"],
+        ),
+        (
+            "empty-map",
+            "albedo = { file = \"empty.npy\" }\n",
+            &["empty"],
+        ),
+        (
+            "junk-npy",
+            "albedo = { file = \"junk.npy\" }\n",
+            &["junk.npy"],
+        ),
+        (
+            "junk-exr",
+            "albedo = { file = \"junk.exr\" }\n",
+            &["junk.exr"],
+        ),
+        (
+            "junk-png",
+            "albedo = { file = \"junk.png\", transfer = \"srgb\" }\n",
+            &["junk.png"],
+        ),
+        (
+            "zero-image",
+            "albedo = { constant = 0.5 }\n[image]\nresolution = 0\n",
+            &["zero-image.toml", "image.resolution"],
+        ),
+        (
+            "zero-texel",
+            "texel = 0.0\nalbedo = { constant = 0.5 }\n",
+            &["zero-texel.toml", "texel"],
+        ),
+        (
+            "zero-density",
+            "albedo = { constant = 0.5 }\ndensity = { constant = 0.0 }\n",
+            &["zero-density.toml", "density"],
+        ),
+        (
+            "eta",
+            "albedo = { constant = 0.5 }\nmedium = { eta = 0.5 }\n",
+            &["eta.toml", "medium.eta"],
+        ),
+        (
+            "light-kind",
+            "albedo = { constant = 0.5 }\n[light]\nkind = \"laser\"\n",
+            &["light-kind.toml", "light.kind"],
+        ),
+        (
+            "method",
+            "albedo = { constant = 0.5 }\nmethods = [\"magic\"]\n",
+            &["method.toml", "methods"],
+        ),
+    ];
+    for (name, text, needles) in cases {
+        let p = d.join(format!("{name}.toml"));
+        std::fs::write(&p, text).unwrap();
+        fails(&["render", p.to_str().unwrap(), "--out", o], needles, &out);
+    }
+    fails(
+        &[
+            "render",
+            d.join("absent.toml").to_str().unwrap(),
+            "--out",
+            o,
+        ],
+        &["absent.toml"],
+        &out,
+    );
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+#[test]
+fn corrupted_models_and_tallies_fail_cleanly() {
+    let d = tmpdir("models");
+    let out = d.join("out");
+    let o = out.to_str().unwrap();
+    let scene = d.join("s.toml");
+    std::fs::write(
+        &scene,
+        "albedo = { constant = 0.5 }\n[image]\nresolution = 4\n",
+    )
+    .unwrap();
+    let s = scene.to_str().unwrap();
+    // Truncated and wrong-format model files, named.
+    let basis = std::fs::read_to_string("data/profiles/basis.json").unwrap();
+    std::fs::write(d.join("basis_cut.json"), &basis[..basis.len() / 2]).unwrap();
+    let meta = std::fs::read_to_string("data/profiles/metamodel.json").unwrap();
+    std::fs::write(d.join("meta_cut.json"), &meta[..meta.len() / 3]).unwrap();
+    let bc = d.join("basis_cut.json");
+    let mc = d.join("meta_cut.json");
+    fails(
+        &[
+            "render",
+            s,
+            "--method",
+            "point",
+            "--basis",
+            bc.to_str().unwrap(),
+            "--out",
+            o,
+        ],
+        &["basis_cut.json"],
+        &out,
+    );
+    fails(
+        &[
+            "render",
+            s,
+            "--method",
+            "learned",
+            "--model",
+            mc.to_str().unwrap(),
+            "--out",
+            o,
+        ],
+        &["meta_cut.json"],
+        &out,
+    );
+    fails(
+        &[
+            "render",
+            s,
+            "--method",
+            "point",
+            "--basis",
+            "data/profiles/metamodel.json",
+            "--out",
+            o,
+        ],
+        &["metamodel.json"],
+        &out,
+    );
+    // A diffuse light with the collimated basis: refused, naming the key.
+    let diffuse = d.join("d.toml");
+    std::fs::write(
+        &diffuse,
+        "albedo = { constant = 0.5 }\n[light]\nkind = \"diffuse\"\n",
+    )
+    .unwrap();
+    fails(
+        &[
+            "render",
+            diffuse.to_str().unwrap(),
+            "--method",
+            "point",
+            "--basis-diffuse",
+            "data/profiles/basis.json",
+            "--out",
+            o,
+        ],
+        &["basis.json", "incidence"],
+        &out,
+    );
+    // A corrupted reference tally.
+    std::fs::write(
+        d.join("tally.json"),
+        "{\"format\": \"svkernel.reference\", \"version\": 1, \"key\":",
+    )
+    .unwrap();
+    let t = d.join("tally.json");
+    fails(
+        &[
+            "render",
+            s,
+            "--method",
+            "reference",
+            "--reference-tally",
+            t.to_str().unwrap(),
+            "--out",
+            o,
+        ],
+        &["tally.json"],
+        &out,
+    );
+    fails(
+        &[
+            "merge",
+            t.to_str().unwrap(),
+            "--out",
+            d.join("m.json").to_str().unwrap(),
+        ],
+        &["tally.json"],
+        &d.join("m.json"),
+    );
+    // Bad flags.
+    fails(
+        &["render", s, "--sampling", "random", "--out", o],
+        &["--sampling"],
+        &out,
+    );
+    fails(
+        &["render", s, "--resolution", "0", "--out", o],
+        &["--resolution"],
+        &out,
+    );
+    fails(
+        &["render", s, "--shard", "3/3", "--out", o],
+        &["--shard"],
+        &out,
+    );
+    fails(
+        &["compare", s, "--spp-list", "0", "--out", o],
+        &["budgets"],
+        &out,
+    );
+    std::fs::remove_dir_all(&d).unwrap();
+}
