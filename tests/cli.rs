@@ -499,3 +499,58 @@ fn cluster_scripts_shard_and_merge_like_one_run() {
     assert_eq!(a["key"], b["key"]);
     std::fs::remove_dir_all(&d).unwrap();
 }
+
+/// A reference render killed with SIGKILL after a checkpoint and resumed
+/// gives bitwise the uninterrupted tally; the killed run leaves no images.
+#[test]
+fn render_resume_after_kill_is_bitwise_identical() {
+    let d = tmpdir("render-resume");
+    let scene = d.join("s.toml");
+    std::fs::write(
+        &scene,
+        "texel = 0.25\nalbedo = { pattern = \"stripes\", values = [0.9, 0.99], width = 0.5 }\n\
+         [light]\nradius = 1.0\n[image]\nresolution = 8\nhalf_width = 2.0\n",
+    )
+    .unwrap();
+    let s = scene.to_str().unwrap();
+    let common = ["render", s, "--method", "reference", "--paths", "3e6"];
+    let o = bin()
+        .args(common)
+        .arg("--out")
+        .arg(d.join("full"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = d.join("run");
+    let ckpt = out.join("reference.main.ckpt");
+    let mut child = bin()
+        .args(common)
+        .args(["--checkpoint-every", "0", "--out"])
+        .arg(&out)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let t0 = Instant::now();
+    while !ckpt.exists() && t0.elapsed() < Duration::from_secs(120) {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert!(ckpt.exists(), "no checkpoint was written");
+    assert!(!out.join("render.json").exists() && !out.join("main/reference.exr").exists());
+    let o = bin()
+        .args(common)
+        .args(["--resume", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (a, b) = (
+        json(&d.join("full/main/reference.tally.json")),
+        json(&out.join("main/reference.tally.json")),
+    );
+    assert_eq!(a["tally"], b["tally"]);
+    assert!(!ckpt.exists());
+    std::fs::remove_dir_all(&d).unwrap();
+}
