@@ -131,9 +131,10 @@ struct RenderArgs {
     /// Kernel-method variant: not density-scaled aggregation.
     #[arg(long)]
     plain: bool,
-    /// Kernel-method variant: first/last-vertex kernels instead of point albedos.
+    /// Kernel-method variant: point albedos in the local terms instead of the
+    /// first/last-vertex kernels (the default).
     #[arg(long)]
-    vertex_kernels: bool,
+    point_albedos: bool,
     /// Kernel-method variant: a second pass with α₀ = α_t.
     #[arg(long)]
     two_pass: bool,
@@ -985,7 +986,7 @@ fn render(a: RenderArgs) -> Result<()> {
         sampling: Sampling::parse(&a.sampling)?,
         variant: Variant {
             plain: a.plain,
-            vertex_kernels: a.vertex_kernels,
+            vertex_kernels: !a.point_albedos,
             two_pass: a.two_pass,
         },
         seed: a.seed,
