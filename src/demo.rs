@@ -80,7 +80,8 @@ pub const DEMO_SCENES: [&str; 2] = ["scenes/stripes.toml", "scenes/checker.toml"
 const DEMO_REFERENCE_PATHS: u64 = 4_000_000;
 const DEMO_SPP: u32 = 64;
 
-/// Renders [`DEMO_SCENES`] with the reference and every method (MIS,
+/// Renders [`DEMO_SCENES`] with the reference and every method (importance
+/// sampling,
 /// 64 spp, 4e6 reference paths) into `out/<scene>/`; returns each scene's
 /// name, passes and `render.json` sidecar.
 pub fn render_scenes(
@@ -94,7 +95,7 @@ pub fn render_scenes(
         let opts = RenderOptions {
             targets: Vec::new(),
             spp: Some(DEMO_SPP),
-            sampling: crate::render::estimator::Sampling::Mis,
+            sampling: crate::render::estimator::Sampling::Importance,
             variant: Default::default(),
             seed: 1,
             reference_paths: Some(DEMO_REFERENCE_PATHS),

@@ -92,7 +92,7 @@ enum Command {
         #[arg(long, value_delimiter = ',', default_value = "1e5,1e6,1e7", value_parser = parse_count)]
         paths_list: Vec<u64>,
         /// uniform | importance | mis
-        #[arg(long, default_value = "mis")]
+        #[arg(long, default_value = "importance")]
         sampling: String,
         #[arg(long, default_value_t = 1)]
         seed: u64,
@@ -126,7 +126,7 @@ struct RenderArgs {
     #[arg(long)]
     resolution: Option<usize>,
     /// uniform | importance | mis
-    #[arg(long, default_value = "mis")]
+    #[arg(long, default_value = "importance")]
     sampling: String,
     /// Kernel-method variant: not density-scaled aggregation.
     #[arg(long)]
@@ -612,7 +612,7 @@ fn demo(out: PathBuf, paths: u64) -> Result<()> {
     }
     println!("wrote {} and {}", r.json.display(), r.plot.display());
     println!(
-        "rendering {} (64 spp MIS, reference 4e6 paths, 64² pixels):",
+        "rendering {} (64 spp importance sampling, reference 4e6 paths, 64² pixels):",
         svkernel::demo::DEMO_SCENES.join(", ")
     );
     let scenes = svkernel::demo::render_scenes(&out, std::io::stderr().is_terminal())?;

@@ -28,6 +28,12 @@
 //!   and every sample is weighted by the balance heuristic
 //!   f/(n_u p_u + n_i p_i) (Veach 1997, §9.2.2).
 //!
+//! Measured (`svkernel compare --sampling …`, learned, 256 spp, 64²):
+//! importance alone beats MIS at equal time on `stripes`, `checker` and
+//! `density` (relative error 6.3 / 6.5 / 8.3 % against 8.2 / 9.1 / 9.6 %);
+//! uniform sampling has infinite variance (the 1/r of single scattering) and
+//! errs by 23–215 %. `importance` is the CLI default.
+//!
 //! # Streams and errors
 //! Sample j of pixel p draws from [`PathRng`]`(seed, p·spp + j)`, whatever
 //! the method: all methods see the same x_e, the same x_i and the same
