@@ -950,7 +950,10 @@ fn compare(
             );
         }
     }
-    println!("wrote {}/error_time.json and error_time.png", out.display());
+    println!(
+        "wrote {}/error_time.json, error_time.png and error_time.svg",
+        out.display()
+    );
     Ok(())
 }
 

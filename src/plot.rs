@@ -95,13 +95,11 @@ fn range(v: impl Iterator<Item = f64>, log: bool) -> (f64, f64) {
     }
 }
 
-/// Draws an x–y chart to `path` (PNG, 900×600).
-pub fn chart(path: &Path, axes: &Axes, series: &[Series]) -> Result<()> {
-    let xs = series.iter().flat_map(|s| s.points.iter().map(|p| p.0));
-    let ys = series.iter().flat_map(|s| s.points.iter().map(|p| p.1));
-    let (x0, x1) = range(xs, axes.log_x);
-    let (y0, y1) = range(ys, axes.log_y);
-    png(path, (900, 600), |root| {
+/// The chart body on any plotters backend (`$root` a drawing area).
+macro_rules! draw_chart {
+    ($root:expr, $axes:expr, $series:expr, $ranges:expr) => {{
+        let (root, axes, series) = ($root, $axes, $series);
+        let (x0, x1, y0, y1): (f64, f64, f64, f64) = $ranges;
         macro_rules! builder {
             () => {
                 ChartBuilder::on(&root)
@@ -176,7 +174,41 @@ pub fn chart(path: &Path, axes: &Axes, series: &[Series]) -> Result<()> {
             (false, false) => body!(builder!().build_cartesian_2d(x0..x1, y0..y1)?),
         }
         Ok(())
-    })
+    }};
+}
+
+/// The data ranges of a chart.
+fn chart_ranges(axes: &Axes, series: &[Series]) -> (f64, f64, f64, f64) {
+    let xs = series.iter().flat_map(|s| s.points.iter().map(|p| p.0));
+    let ys = series.iter().flat_map(|s| s.points.iter().map(|p| p.1));
+    let (x0, x1) = range(xs, axes.log_x);
+    let (y0, y1) = range(ys, axes.log_y);
+    (x0, x1, y0, y1)
+}
+
+/// Draws an x–y chart to `path` (PNG, 900×600).
+pub fn chart(path: &Path, axes: &Axes, series: &[Series]) -> Result<()> {
+    let r = chart_ranges(axes, series);
+    png(path, (900, 600), |root| draw_chart!(root, axes, series, r))
+}
+
+/// [`chart`] as SVG (900×600), written atomically.
+pub fn chart_svg(path: &Path, axes: &Axes, series: &[Series]) -> Result<()> {
+    let r = chart_ranges(axes, series);
+    let tmp = crate::io::temp_sibling(path);
+    let result = (|| -> DrawResult {
+        let root = SVGBackend::new(&tmp, (900, 600)).into_drawing_area();
+        root.fill(&WHITE)?;
+        let drawn: DrawResult = draw_chart!(&root, axes, series, r);
+        drawn?;
+        root.present()?;
+        Ok(())
+    })();
+    result.map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        Error::format(path, "(plot)", e)
+    })?;
+    crate::io::commit(&tmp, path)
 }
 
 /// What a drawing closure returns.

@@ -414,6 +414,8 @@ fn compare_writes_error_time_curves() {
         "reference error must fall with 100× the paths"
     );
     assert!(d.join("error_time.png").exists());
+    let svg = std::fs::read_to_string(d.join("error_time.svg")).unwrap();
+    assert!(svg.starts_with("<svg") && svg.contains("learned"));
     std::fs::remove_dir_all(&d).unwrap();
 }
 

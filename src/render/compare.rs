@@ -129,10 +129,10 @@ pub fn error_vs_time(
     Ok((curves, *truth_s))
 }
 
-/// The log-log error-vs-time plot (reference solid black-ish, models in the
-/// palette) as PNG.
+/// The log-log error-vs-time plot (reference dashed, models in the palette)
+/// as PNG at `path` and as SVG beside it (same stem, `.svg`).
 pub fn plot_curves(path: &Path, scene: &str, curves: &[Curve]) -> Result<()> {
-    use crate::plot::{Axes, Series, chart};
+    use crate::plot::{Axes, Series, chart, chart_svg};
     let series: Vec<Series> = curves
         .iter()
         .enumerate()
@@ -145,15 +145,13 @@ pub fn plot_curves(path: &Path, scene: &str, curves: &[Curve]) -> Result<()> {
             }
         })
         .collect();
-    chart(
-        path,
-        &Axes {
-            title: format!("{scene}: error vs time (reference dashed)"),
-            x_label: "wall time [s]".into(),
-            y_label: "relative RMSE vs truth".into(),
-            log_x: true,
-            log_y: true,
-        },
-        &series,
-    )
+    let axes = Axes {
+        title: format!("{scene}: error vs time (reference dashed)"),
+        x_label: "wall time [s]".into(),
+        y_label: "relative RMSE vs truth".into(),
+        log_x: true,
+        log_y: true,
+    };
+    chart(path, &axes, &series)?;
+    chart_svg(&path.with_extension("svg"), &axes, &series)
 }
