@@ -31,6 +31,8 @@ pub struct DemoReport {
 /// repository root, where `cargo run` starts).
 pub const SHIPPED_BASIS: &str = "data/profiles/basis.json";
 pub const SHIPPED_META: &str = "data/profiles/metamodel.json";
+/// The shipped diffuse-incidence basis model (scenes with a diffuse light).
+pub const SHIPPED_BASIS_DIFFUSE: &str = "data/profiles/basis_diffuse.json";
 
 /// Simulates `paths` paths of the default medium (η = 1.5, g = 0.3) at
 /// α = 0.9 with a pencil beam and writes `profile.json` and `profile.png`
@@ -81,38 +83,24 @@ const DEMO_REFERENCE_PATHS: u64 = 4_000_000;
 const DEMO_SPP: u32 = 64;
 
 /// Renders [`DEMO_SCENES`] with the reference and every method (importance
-/// sampling,
-/// 64 spp, 4e6 reference paths) into `out/<scene>/`; returns each scene's
-/// name, passes and `render.json` sidecar.
-pub fn render_scenes(
-    out: &Path,
-    progress: bool,
-) -> Result<Vec<(String, Vec<crate::render::job::Pass>, serde_json::Value)>> {
+/// sampling, 64 spp, 4e6 reference paths) into `out/<scene>/`; returns each
+/// scene's name and `render.json` sidecar.
+pub fn render_scenes(out: &Path, progress: bool) -> Result<Vec<(String, serde_json::Value)>> {
     use crate::render::job::{RenderOptions, render_scene, write_outputs};
     let mut done = Vec::new();
     for path in DEMO_SCENES {
         let scene = crate::render::scene::Scene::load(Path::new(path))?;
         let opts = RenderOptions {
-            targets: Vec::new(),
             spp: Some(DEMO_SPP),
-            sampling: crate::render::estimator::Sampling::Importance,
-            variant: Default::default(),
-            seed: 1,
             reference_paths: Some(DEMO_REFERENCE_PATHS),
-            basis: SHIPPED_BASIS.into(),
-            basis_diffuse: "data/profiles/basis_diffuse.json".into(),
-            meta: SHIPPED_META.into(),
-            out: out.join(&scene.name),
-            shard: None,
             run: RunOptions {
                 progress,
                 ..Default::default()
             },
-            reference_tallies: Vec::new(),
+            ..RenderOptions::new(out.join(&scene.name))
         };
         let passes = render_scene(&scene, &opts)?;
-        let doc = write_outputs(&scene, &opts, &passes)?;
-        done.push((scene.name.clone(), passes, doc));
+        done.push((scene.name.clone(), write_outputs(&scene, &opts, &passes)?));
     }
     Ok(done)
 }

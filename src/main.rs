@@ -168,11 +168,11 @@ struct RenderArgs {
 }
 
 /// The shipped basis model.
-const DEFAULT_BASIS: &str = "data/profiles/basis.json";
+const DEFAULT_BASIS: &str = svkernel::demo::SHIPPED_BASIS;
 /// The shipped diffuse-incidence basis model.
-const DEFAULT_BASIS_DIFFUSE: &str = "data/profiles/basis_diffuse.json";
+const DEFAULT_BASIS_DIFFUSE: &str = svkernel::demo::SHIPPED_BASIS_DIFFUSE;
 const DEFAULT_KERNELS: &str = "data/kernels/eta1.5_g0.3_pencil.json";
-const DEFAULT_META: &str = "data/profiles/metamodel.json";
+const DEFAULT_META: &str = svkernel::demo::SHIPPED_META;
 /// The shipped profiles of the default medium.
 const DEFAULT_PROFILES: &str = "data/profiles/eta1.5_g0.3_pencil";
 
@@ -327,13 +327,9 @@ impl RunArgs {
     /// The parsed shard and the runner's options (validates the interval).
     fn options(&self) -> Result<(Option<Shard>, RunOptions)> {
         let shard = self.shard.as_deref().map(Shard::parse).transpose()?;
-        let every = self.checkpoint_every;
-        if !(every >= 0.0 && every.is_finite()) {
-            bail!("invalid --checkpoint-every = {every}: must be >= 0 seconds");
-        }
         let opts = RunOptions {
             checkpoint: Some(checkpoint_path(&self.out)),
-            checkpoint_every: Duration::from_secs_f64(every),
+            checkpoint_every: checkpoint_interval(self.checkpoint_every)?,
             resume: self.resume,
             progress: std::io::stderr().is_terminal(),
         };
@@ -616,25 +612,10 @@ fn demo(out: PathBuf, paths: u64) -> Result<()> {
         svkernel::demo::DEMO_SCENES.join(", ")
     );
     let scenes = svkernel::demo::render_scenes(&out, std::io::stderr().is_terminal())?;
-    println!(
-        "  {:<8} {:<11} {:>9} {:>10} {:>10}",
-        "scene", "method", "time [s]", "rel RMSE", "rel bias"
-    );
-    for (name, _, doc) in &scenes {
+    println!("  {:<8} {}", "scene", method_header());
+    for (name, doc) in &scenes {
         for m in doc["passes"][0]["methods"].as_array().into_iter().flatten() {
-            let f = |k: &str| {
-                m["metrics"][k]
-                    .as_f64()
-                    .map_or("—".to_string(), |v| format!("{v:.4}"))
-            };
-            println!(
-                "  {:<8} {:<11} {:>9.2} {:>10} {:>10}",
-                name,
-                m["method"].as_str().unwrap_or(""),
-                m["wall_s"].as_f64().unwrap_or(0.0),
-                f("rel_rmse"),
-                f("rel_bias")
-            );
+            println!("  {name:<8} {}", method_row(m));
         }
         println!("  wrote {}/{name}/main/row.png", out.display());
     }
@@ -903,22 +884,13 @@ fn compare(
     use svkernel::render::job::RenderOptions;
     let scene = svkernel::render::scene::Scene::load(scene)?;
     let opts = RenderOptions {
-        targets: Vec::new(),
-        spp: None,
         sampling: Sampling::parse(sampling)?,
-        variant: Default::default(),
         seed,
-        reference_paths: None,
-        basis: DEFAULT_BASIS.into(),
-        basis_diffuse: DEFAULT_BASIS_DIFFUSE.into(),
-        meta: DEFAULT_META.into(),
-        out: out.clone(),
-        shard: None,
         run: RunOptions {
             progress: std::io::stderr().is_terminal(),
             ..Default::default()
         },
-        reference_tallies: Vec::new(),
+        ..RenderOptions::new(out.clone())
     };
     let (curves, truth_s) = error_vs_time(&scene, &opts, truth_paths, spps, paths)?;
     let doc = serde_json::json!({
@@ -957,6 +929,39 @@ fn compare(
     Ok(())
 }
 
+/// Header of the per-method table of `render` and `demo`.
+fn method_header() -> String {
+    format!(
+        "{:<11} {:>9} {:>10} {:>10}",
+        "method", "time [s]", "rel RMSE", "rel bias"
+    )
+}
+
+/// One method of a `render.json` pass: name, time, relative RMSE and bias
+/// against the reference ("—" for the reference itself).
+fn method_row(m: &serde_json::Value) -> String {
+    let f = |k: &str| {
+        m["metrics"][k]
+            .as_f64()
+            .map_or("—".to_string(), |v| format!("{v:.4}"))
+    };
+    format!(
+        "{:<11} {:>9.2} {:>10} {:>10}",
+        m["method"].as_str().unwrap_or(""),
+        m["wall_s"].as_f64().unwrap_or(0.0),
+        f("rel_rmse"),
+        f("rel_bias")
+    )
+}
+
+/// `--checkpoint-every` as a duration (≥ 0 seconds).
+fn checkpoint_interval(every: f64) -> Result<Duration> {
+    if !(every >= 0.0 && every.is_finite()) {
+        bail!("invalid --checkpoint-every = {every}: must be >= 0 seconds");
+    }
+    Ok(Duration::from_secs_f64(every))
+}
+
 /// `svkernel render`.
 fn render(a: RenderArgs) -> Result<()> {
     use svkernel::render::estimator::Sampling;
@@ -978,11 +983,6 @@ fn render(a: RenderArgs) -> Result<()> {
     if a.spp == Some(0) {
         bail!("invalid --spp = 0: must be >= 1");
     }
-    let every = a.checkpoint_every;
-    if !(every >= 0.0 && every.is_finite()) {
-        bail!("invalid --checkpoint-every = {every}: must be >= 0 seconds");
-    }
-    let progress = std::io::stderr().is_terminal();
     let opts = RenderOptions {
         targets,
         spp: a.spp,
@@ -1000,9 +1000,9 @@ fn render(a: RenderArgs) -> Result<()> {
         shard: a.shard.as_deref().map(Shard::parse).transpose()?,
         run: RunOptions {
             checkpoint: Some(a.out.join("reference")),
-            checkpoint_every: Duration::from_secs_f64(every),
+            checkpoint_every: checkpoint_interval(a.checkpoint_every)?,
             resume: a.resume,
-            progress,
+            progress: std::io::stderr().is_terminal(),
         },
         reference_tallies: a.reference_tallies,
         out: a.out.clone(),
@@ -1015,23 +1015,9 @@ fn render(a: RenderArgs) -> Result<()> {
         .zip(doc["passes"].as_array().into_iter().flatten())
     {
         println!("pass {}:", tag_or(&pass.tag));
-        println!(
-            "  {:<11} {:>9} {:>10} {:>10}",
-            "method", "time [s]", "rel RMSE", "rel bias"
-        );
+        println!("  {}", method_header());
         for m in pd["methods"].as_array().into_iter().flatten() {
-            let f = |k: &str| {
-                m["metrics"][k]
-                    .as_f64()
-                    .map_or("—".to_string(), |v| format!("{v:.4}"))
-            };
-            println!(
-                "  {:<11} {:>9.2} {:>10} {:>10}",
-                m["method"].as_str().unwrap_or(""),
-                m["wall_s"].as_f64().unwrap_or(0.0),
-                f("rel_rmse"),
-                f("rel_bias")
-            );
+            println!("  {}", method_row(m));
         }
         if let Some(e) = pass.reference_events_per_s {
             println!("  reference: {e:.3e} scattering events/s");

@@ -19,20 +19,12 @@ fn scene_file(name: &str, toml: &str) -> PathBuf {
 }
 
 fn options(targets: Vec<Target>, spp: u32, paths: u64, out: &str) -> RenderOptions {
+    let dir = std::env::temp_dir().join(format!("svk-render-out-{}-{out}", std::process::id()));
     RenderOptions {
         targets,
         spp: Some(spp),
-        sampling: Sampling::Importance,
-        variant: Variant::default(),
-        seed: 1,
         reference_paths: Some(paths),
-        basis: "data/profiles/basis.json".into(),
-        basis_diffuse: "data/profiles/basis_diffuse.json".into(),
-        meta: "data/profiles/metamodel.json".into(),
-        out: std::env::temp_dir().join(format!("svk-render-out-{}-{out}", std::process::id())),
-        shard: None,
-        run: RunOptions::default(),
-        reference_tallies: Vec::new(),
+        ..RenderOptions::new(dir)
     }
 }
 

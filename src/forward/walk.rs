@@ -146,16 +146,40 @@ fn wall(
     b: u32,
     inv_eta: f64,
 ) -> Wall {
-    let to_wall = if w[2] > 0.0 {
-        -*z / w[2]
-    } else if let (Some(zb), true) = (bottom, w[2] < 0.0) {
-        (zb - *z) / w[2]
-    } else {
-        f64::INFINITY
-    };
+    let to_wall = wall_distance(*z, w, bottom);
     if s < to_wall {
         return Wall::Missed;
     }
+    hit_wall(x, y, z, w, to_wall, bottom, b, inv_eta)
+}
+
+/// Distance along `w` from depth `z` to the surface (w_z > 0) or the slab's
+/// bottom (w_z < 0); ∞ if the flight meets neither.
+#[inline(always)]
+fn wall_distance(z: f64, w: &Vec3, bottom: Option<f64>) -> f64 {
+    if w[2] > 0.0 {
+        -z / w[2]
+    } else if let (Some(zb), true) = (bottom, w[2] < 0.0) {
+        (zb - z) / w[2]
+    } else {
+        f64::INFINITY
+    }
+}
+
+/// Moves to the wall `to_wall` away and reflects there with probability
+/// F(|w_z|) decided by `b` (`Reflected`), or leaves (`Left`).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn hit_wall(
+    x: &mut f64,
+    y: &mut f64,
+    z: &mut f64,
+    w: &mut Vec3,
+    to_wall: f64,
+    bottom: Option<f64>,
+    b: u32,
+    inv_eta: f64,
+) -> Wall {
     *x += w[0] * to_wall;
     *y += w[1] * to_wall;
     let at_top = w[2] > 0.0;
@@ -419,29 +443,13 @@ pub fn walk_tracked<A: AlbedoField>(
     loop {
         let (a, b, c) = (rng.next_u32(), rng.next_u32(), rng.next_u32());
         let depth = -unit_open0_f64(a).ln();
-        let to_wall = if w[2] > 0.0 {
-            -z / w[2]
-        } else if let (Some(zb), true) = (bottom, w[2] < 0.0) {
-            (zb - z) / w[2]
-        } else {
-            f64::INFINITY
-        };
+        let to_wall = wall_distance(z, &w, bottom);
         let (s, collided) = track_flight(density, (x, y), (w[0], w[1]), depth, to_wall);
         if !collided {
-            match wall(
-                &mut x,
-                &mut y,
-                &mut z,
-                &mut w,
-                f64::INFINITY,
-                bottom,
-                b,
-                inv_eta,
-            ) {
-                // Not taken: the flight reached the wall (s = to_wall).
-                Wall::Missed => continue,
-                Wall::Reflected => continue,
+            let hit = hit_wall(&mut x, &mut y, &mut z, &mut w, to_wall, bottom, b, inv_eta);
+            match hit {
                 Wall::Left(fate) => return (fate, n),
+                _ => continue,
             }
         }
         x += w[0] * s;

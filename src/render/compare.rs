@@ -38,14 +38,7 @@ pub struct Curve {
 
 /// The truth-noise-subtracted relative RMSE of `m` against `t` (module docs).
 pub fn rel_error(m: &Image, t: &Image) -> f64 {
-    let (mut se, mut noise, mut norm) = (0.0, 0.0, 0.0);
-    for k in 0..t.mean.len() {
-        let d = m.mean[k] - t.mean[k];
-        se += d * d;
-        noise += t.stderr[k] * t.stderr[k];
-        norm += t.mean[k] * t.mean[k];
-    }
-    ((se - noise).max(0.0) / norm).sqrt()
+    super::job::rel_rmse(m, t, false)
 }
 
 /// Renders the truth (`truth_paths`, seed `opts.seed + 1_000_003`), the
@@ -67,11 +60,11 @@ pub fn error_vs_time(
         ));
     }
     let first = |o: &RenderOptions| -> Result<Vec<(Target, Image, f64)>> {
-        let passes = render_scene(scene, o)?;
-        Ok(passes[0]
+        let first_pass = render_scene(scene, o)?.swap_remove(0);
+        Ok(first_pass
             .rendered
-            .iter()
-            .map(|r| (r.target, r.image.clone(), r.wall_s))
+            .into_iter()
+            .map(|r| (r.target, r.image, r.wall_s))
             .collect())
     };
     let mut o = opts.clone();

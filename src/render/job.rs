@@ -81,6 +81,29 @@ pub struct RenderOptions {
     pub reference_tallies: Vec<PathBuf>,
 }
 
+impl RenderOptions {
+    /// The defaults into `out`: the scene's targets, samples and reference
+    /// paths, importance sampling, the default variant, seed 1, the shipped
+    /// models, no shard, no checkpoint, no progress.
+    pub fn new(out: PathBuf) -> Self {
+        RenderOptions {
+            targets: Vec::new(),
+            spp: None,
+            sampling: Sampling::Importance,
+            variant: Variant::default(),
+            seed: 1,
+            reference_paths: None,
+            basis: crate::demo::SHIPPED_BASIS.into(),
+            basis_diffuse: crate::demo::SHIPPED_BASIS_DIFFUSE.into(),
+            meta: crate::demo::SHIPPED_META.into(),
+            out,
+            shard: None,
+            run: RunOptions::default(),
+            reference_tallies: Vec::new(),
+        }
+    }
+}
+
 /// A stored reference tally (mergeable; `svkernel merge`).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct ReferenceDoc {
@@ -128,19 +151,31 @@ pub struct Metrics {
 
 /// Relative RMSE and bias of `m` against `r` over all pixels and channels.
 pub fn metrics(m: &Image, r: &Image) -> Metrics {
-    let (mut se, mut noise, mut norm, mut diff, mut sum) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    let (diff, sum) = m
+        .mean
+        .iter()
+        .zip(&r.mean)
+        .fold((0.0, 0.0), |(d, s), (a, b)| (d + a - b, s + b));
+    Metrics {
+        rel_rmse: rel_rmse(m, r, true),
+        rel_bias: diff / sum,
+    }
+}
+
+/// √(max(0, Σ(m − r)² − noise)/Σr²) over all pixels and channels, the noise
+/// being Σσ_r² plus, if `subtract_own_noise`, Σσ_m².
+pub fn rel_rmse(m: &Image, r: &Image, subtract_own_noise: bool) -> f64 {
+    let (mut se, mut noise, mut norm) = (0.0, 0.0, 0.0);
     for k in 0..r.mean.len() {
         let d = m.mean[k] - r.mean[k];
         se += d * d;
-        noise += m.stderr[k].powi(2) + r.stderr[k].powi(2);
+        noise += r.stderr[k].powi(2);
+        if subtract_own_noise {
+            noise += m.stderr[k].powi(2);
+        }
         norm += r.mean[k] * r.mean[k];
-        diff += d;
-        sum += r.mean[k];
     }
-    Metrics {
-        rel_rmse: ((se - noise).max(0.0) / norm).sqrt(),
-        rel_bias: diff / sum,
-    }
+    ((se - noise).max(0.0) / norm).sqrt()
 }
 
 /// A content hash of the scene file (FNV-1a, 64 bits, hex): identifies a

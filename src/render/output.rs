@@ -126,16 +126,30 @@ pub fn write_png_bytes_wh(
 /// The tone-mapped preview of `img` (module docs).
 pub fn write_png(path: &Path, img: &Image, white: f64) -> Result<()> {
     let n = img.resolution;
-    let rgb = img.channels == 3;
     let mut data = Vec::with_capacity(n * n * img.channels);
     for i in 0..n {
         for j in 0..n {
-            for c in 0..img.channels {
-                data.push(to_u8(srgb(img.mean[img.index(c, i, j)] / white)));
-            }
+            data.extend((0..img.channels).map(|c| tone(img, c, i, j, white)));
         }
     }
-    write_png_bytes(path, n, rgb, &data)
+    write_png_bytes(path, n, img.channels == 3, &data)
+}
+
+/// The preview byte of channel c of pixel (i, j) (module docs).
+#[inline]
+fn tone(img: &Image, c: usize, i: usize, j: usize, white: f64) -> u8 {
+    to_u8(srgb(img.mean[img.index(c, i, j)] / white))
+}
+
+/// The diverging colour of the channel-mean difference a − b at pixel
+/// (i, j), full scale ±`range`.
+#[inline]
+fn difference(a: &Image, b: &Image, i: usize, j: usize, range: f64) -> [u8; 3] {
+    let d = (0..a.channels)
+        .map(|c| a.mean[a.index(c, i, j)] - b.mean[b.index(c, i, j)])
+        .sum::<f64>()
+        / a.channels as f64;
+    diverging((d / range).clamp(-1.0, 1.0))
 }
 
 /// A diverging preview of the signed difference `a − b` (channel mean),
@@ -145,11 +159,7 @@ pub fn write_diff_png(path: &Path, a: &Image, b: &Image, range: f64) -> Result<(
     let mut data = Vec::with_capacity(n * n * 3);
     for i in 0..n {
         for j in 0..n {
-            let d = (0..a.channels)
-                .map(|c| a.mean[a.index(c, i, j)] - b.mean[b.index(c, i, j)])
-                .sum::<f64>()
-                / a.channels as f64;
-            data.extend(diverging((d / range).clamp(-1.0, 1.0)));
+            data.extend(difference(a, b, i, j, range));
         }
     }
     write_png_bytes(path, n, true, &data)
@@ -166,30 +176,28 @@ pub fn write_row_png(path: &Path, images: &[&Image], white: f64, range: f64) -> 
     let width = images.len() * (tile + gap) - gap;
     let height = 2 * tile + gap;
     let mut data = vec![255u8; width * height * 3];
-    let mut put = |x: usize, y: usize, rgb: [u8; 3]| {
-        let k = 3 * (y * width + x);
-        data[k..k + 3].copy_from_slice(&rgb);
+    // Paints the zoom × zoom block of source pixel (i, j) at tile origin (x0, y0).
+    let mut block = |x0: usize, y0: usize, i: usize, j: usize, rgb: [u8; 3]| {
+        for y in y0 + i * zoom..y0 + (i + 1) * zoom {
+            for x in x0 + j * zoom..x0 + (j + 1) * zoom {
+                let k = 3 * (y * width + x);
+                data[k..k + 3].copy_from_slice(&rgb);
+            }
+        }
     };
     for (t, img) in images.iter().enumerate() {
         let x0 = t * (tile + gap);
-        for y in 0..tile {
-            for x in 0..tile {
-                let (i, j) = (y / zoom, x / zoom);
-                let rgb: [u8; 3] = std::array::from_fn(|c| {
-                    let c = c.min(img.channels - 1);
-                    to_u8(srgb(img.mean[img.index(c, i, j)] / white))
-                });
-                put(x0 + x, y, rgb);
+        for i in 0..n {
+            for j in 0..n {
+                let rgb = std::array::from_fn(|c| tone(img, c.min(img.channels - 1), i, j, white));
+                block(x0, 0, i, j, rgb);
                 if t > 0 {
-                    let r = images[0];
-                    let d = (0..img.channels)
-                        .map(|c| img.mean[img.index(c, i, j)] - r.mean[r.index(c, i, j)])
-                        .sum::<f64>()
-                        / img.channels as f64;
-                    put(
-                        x0 + x,
-                        tile + gap + y,
-                        diverging((d / range).clamp(-1.0, 1.0)),
+                    block(
+                        x0,
+                        tile + gap,
+                        i,
+                        j,
+                        difference(img, images[0], i, j, range),
                     );
                 }
             }

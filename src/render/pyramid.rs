@@ -276,25 +276,8 @@ impl GaussianPyramid {
     /// [`integrate`](Self::integrate) and the number of stored values (texels
     /// or pyramid nodes) it read, ≤ [`MAX_READS`].
     pub fn integrate_counted(&self, mu: [f64; 2], sigma: f64) -> (f64, usize) {
-        if !(mu[0].is_finite() && mu[1].is_finite() && sigma > 0.0 && sigma.is_finite()) {
-            return (f64::NAN, 0);
-        }
-        let top = self.levels.len() - 1;
-        if sigma < self.levels[0].sigma {
-            let ([v], reads) = exact_window([&self.map], mu, sigma);
-            return (v, reads);
-        }
-        if sigma > self.levels[top].sigma {
-            return (self.corner_asymptote(mu, sigma), 4);
-        }
-        // Bracketing levels a, a + 1 (rounding of the log is absorbed by the clamp).
-        let lf = (sigma.ln() - self.ln_sigma0) * self.levels_per_ln;
-        let a = (lf.floor().max(0.0) as usize).min(top - 1);
-        let (la, lb) = (&self.levels[a], &self.levels[a + 1]);
-        let (va, vb) = (la.sigma * la.sigma, lb.sigma * lb.sigma);
-        let w = ((sigma * sigma - va) / (vb - va)).clamp(0.0, 1.0);
-        let value = (1.0 - w) * self.bilerp(la, mu) + w * self.bilerp(lb, mu);
-        (value, 8)
+        let ([v], reads) = Self::integrate_n([self], mu, sigma);
+        (v, reads)
     }
 
     /// [`integrate`](Self::integrate) of this pyramid and `other` at the same
@@ -307,28 +290,38 @@ impl GaussianPyramid {
             (self.map.nx, self.map.ny, self.map.texel)
                 == (other.map.nx, other.map.ny, other.map.texel)
         );
+        let ([a, b], _) = Self::integrate_n([self, other], mu, sigma);
+        (a, b)
+    }
+
+    /// The query of N pyramids of one geometry at one (μ, σ) (the first
+    /// pyramid's levels decide), and the number of values read from each.
+    #[inline]
+    fn integrate_n<const N: usize>(
+        pyramids: [&GaussianPyramid; N],
+        mu: [f64; 2],
+        sigma: f64,
+    ) -> ([f64; N], usize) {
+        let p0 = pyramids[0];
         if !(mu[0].is_finite() && mu[1].is_finite() && sigma > 0.0 && sigma.is_finite()) {
-            return (f64::NAN, f64::NAN);
+            return ([f64::NAN; N], 0);
         }
-        let top = self.levels.len() - 1;
-        if sigma < self.levels[0].sigma {
-            let ([a, b], _) = exact_window([&self.map, &other.map], mu, sigma);
-            return (a, b);
+        let top = p0.levels.len() - 1;
+        if sigma < p0.levels[0].sigma {
+            return exact_window(pyramids.map(|p| &p.map), mu, sigma);
         }
-        if sigma > self.levels[top].sigma {
-            return (
-                self.corner_asymptote(mu, sigma),
-                other.corner_asymptote(mu, sigma),
-            );
+        if sigma > p0.levels[top].sigma {
+            return (pyramids.map(|p| p.corner_asymptote(mu, sigma)), 4);
         }
-        let lf = (sigma.ln() - self.ln_sigma0) * self.levels_per_ln;
+        // Bracketing levels a, a + 1 (rounding of the log is absorbed by the clamp).
+        let lf = (sigma.ln() - p0.ln_sigma0) * p0.levels_per_ln;
         let a = (lf.floor().max(0.0) as usize).min(top - 1);
-        let (la, lb) = (&self.levels[a], &self.levels[a + 1]);
+        let (la, lb) = (&p0.levels[a], &p0.levels[a + 1]);
         let (va, vb) = (la.sigma * la.sigma, lb.sigma * lb.sigma);
         let w = ((sigma * sigma - va) / (vb - va)).clamp(0.0, 1.0);
         let (ia, ib) = (la.corner(mu), lb.corner(mu));
-        let blend = |p: &GaussianPyramid| (1.0 - w) * p.bilerp_at(la, ia) + w * p.bilerp_at(lb, ib);
-        (blend(self), blend(other))
+        let values = pyramids.map(|p| (1.0 - w) * p.bilerp_at(la, ia) + w * p.bilerp_at(lb, ib));
+        (values, 8)
     }
 
     /// Bilinear interpolation at a located corner (see [`Level::corner`]).
@@ -339,12 +332,6 @@ impl GaussianPyramid {
         let bottom = row0[0] + tx * (row0[1] - row0[0]);
         let upper = row1[0] + tx * (row1[1] - row1[0]);
         bottom + ty * (upper - bottom)
-    }
-
-    /// Bilinear interpolation of one level at μ, clamped to its grid (4 reads).
-    #[inline]
-    fn bilerp(&self, lv: &Level, mu: [f64; 2]) -> f64 {
-        self.bilerp_at(lv, lv.corner(mu))
     }
 
     /// σ > σ_top: the map seen as its four corner quadrants about the texture

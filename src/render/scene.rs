@@ -54,18 +54,14 @@
 use crate::error::{Error, Result};
 use crate::forward::maps::TexelMap;
 use crate::forward::rng::PathRng;
+use crate::render::svbssrdf::Method;
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 
-/// The methods a scene can ask for (design §4's table).
-pub const METHODS: [&str; 6] = [
-    "point",
-    "factorized",
-    "line",
-    "ellipse",
-    "manual",
-    "learned",
-];
+/// The methods a scene can ask for (design §4's table), by name.
+pub fn method_names() -> Vec<&'static str> {
+    Method::ALL.iter().map(|m| m.name()).collect()
+}
 
 #[derive(Clone, Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -292,11 +288,11 @@ impl Scene {
         let methods = raw
             .methods
             .clone()
-            .unwrap_or_else(|| METHODS.iter().map(|s| s.to_string()).collect());
-        if let Some(m) = methods.iter().find(|m| !METHODS.contains(&m.as_str())) {
+            .unwrap_or_else(|| method_names().iter().map(|s| s.to_string()).collect());
+        if let Some(m) = methods.iter().find(|m| Method::parse(m).is_err()) {
             return Err(bad(
                 "methods",
-                format!("unknown method '{m}' (known: {METHODS:?})"),
+                format!("unknown method '{m}' (known: {:?})", method_names()),
             ));
         }
         if raw.samples == 0 {
@@ -816,7 +812,7 @@ mod tests {
         assert_eq!(m.at(-0.3, 0.0), 0.95);
         assert_eq!(m.at(0.2, 0.0), 0.3);
         assert!(!s.albedo_is_constant() && s.is_grey());
-        assert_eq!(s.methods.len(), METHODS.len());
+        assert_eq!(s.methods.len(), method_names().len());
     }
 
     #[test]

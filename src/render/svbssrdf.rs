@@ -56,7 +56,6 @@ use crate::forward::maps::TexelMap;
 use crate::metamodel::basis::{BasisModel, ExpMixture, albedo_coordinate};
 use crate::metamodel::kernel::{Component, Gmm};
 use crate::metamodel::meta::MetaModelFile;
-use crate::pair::VertexClass;
 use crate::render::pyramid::GaussianPyramid;
 use std::f64::consts::PI;
 use std::sync::Arc;
@@ -196,28 +195,33 @@ impl BasisTable {
         }
     }
 
-    /// Index and weight of the interpolation at α.
+    /// The interpolated (ln(A_j/(2πα²)), B_j) of multiple-scattering
+    /// component j < K at α (linear in x = √(1 − α) between table nodes).
     #[inline]
-    fn locate(alpha: f64) -> (usize, f64) {
+    fn interpolated(&self, alpha: f64) -> impl Fn(usize) -> (f64, f64) + '_ {
         let u = albedo_coordinate(alpha) * (TABLE_NODES - 1) as f64;
         let i = (u as usize).min(TABLE_NODES - 2);
-        (i, u - i as f64)
+        let (f, k) = (u - i as f64, self.k);
+        let n0 = &self.nodes[i * 2 * k..(i + 1) * 2 * k];
+        let n1 = &self.nodes[(i + 1) * 2 * k..(i + 2) * 2 * k];
+        move |j| {
+            (
+                n0[j] + f * (n1[j] - n0[j]),
+                n0[k + j] + f * (n1[k + j] - n0[k + j]),
+            )
+        }
     }
 
     /// Rₘ(r; α)/α² at unit density (1/MFP²): bounded for every α ∈ [0, 1].
     #[inline]
     pub fn multi_over_alpha2(&self, r: f64, alpha: f64) -> f64 {
-        let (i, f) = Self::locate(alpha);
-        let k = self.k;
-        let n0 = &self.nodes[i * 2 * k..(i + 1) * 2 * k];
-        let n1 = &self.nodes[(i + 1) * 2 * k..(i + 2) * 2 * k];
-        let mut sum = 0.0;
-        for j in 0..k {
-            let ln_a = n0[j] + f * (n1[j] - n0[j]);
-            let b = n0[k + j] + f * (n1[k + j] - n0[k + j]);
-            sum += (ln_a - b * r).exp();
-        }
-        sum
+        let at = self.interpolated(alpha);
+        (0..self.k)
+            .map(|j| {
+                let (ln_a, b) = at(j);
+                (ln_a - b * r).exp()
+            })
+            .sum()
     }
 
     /// (R₁(r; 1), Rₘ(r; α)/α²) at unit density (1/MFP²), r ≥ [`R_MIN`]:
@@ -231,9 +235,7 @@ impl BasisTable {
         if ks > 4 || k > 8 {
             return (self.single_exitance(r), self.multi_over_alpha2(r, alpha));
         }
-        let (i, f) = Self::locate(alpha);
-        let n0 = &self.nodes[i * 2 * k..(i + 1) * 2 * k];
-        let n1 = &self.nodes[(i + 1) * 2 * k..(i + 2) * 2 * k];
+        let at = self.interpolated(alpha);
         // Exponents ln A − B r; padding lanes at −∞ (e^−∞ = 0).
         let mut e = [f64::NEG_INFINITY; 12];
         for (e, (ln_a, b)) in e
@@ -243,8 +245,7 @@ impl BasisTable {
             *e = ln_a - b * r;
         }
         for j in 0..k {
-            let ln_a = n0[j] + f * (n1[j] - n0[j]);
-            let b = n0[k + j] + f * (n1[k + j] - n0[k + j]);
+            let (ln_a, b) = at(j);
             e[4 + j] = ln_a - b * r;
         }
         let v = |o: usize| wide::f64x4::from([e[o], e[o + 1], e[o + 2], e[o + 3]]).exp();
@@ -271,18 +272,16 @@ impl BasisTable {
     /// (single: n = 0, multiple: n = 1) at unit density, for importance
     /// sampling ([`super::estimator`]); lengths are divided by ρ by the caller.
     pub fn mixtures(&self, alpha: f64) -> [ExpMixture; 2] {
-        let (i, f) = Self::locate(alpha);
-        let k = self.k;
-        let n0 = &self.nodes[i * 2 * k..(i + 1) * 2 * k];
-        let n1 = &self.nodes[(i + 1) * 2 * k..(i + 2) * 2 * k];
-        let lerp = |j: usize| n0[j] + f * (n1[j] - n0[j]);
+        let at = self.interpolated(alpha);
+        let (ln_a, b): (Vec<f64>, Vec<f64>) = (0..self.k).map(at).unzip();
         [
             self.single.scaled(alpha),
             ExpMixture {
-                a: (0..k)
-                    .map(|j| lerp(j).exp() * 2.0 * PI * alpha * alpha)
+                a: ln_a
+                    .iter()
+                    .map(|l| l.exp() * 2.0 * PI * alpha * alpha)
                     .collect(),
-                b: (0..k).map(|j| lerp(k + j)).collect(),
+                b,
                 power: 1,
             },
         ]
@@ -381,12 +380,9 @@ impl SvBssrdf {
             };
             let (rho_alpha, rho) = match &density {
                 Density::Map(rho) => (
-                    albedo
+                    density_weighted(&albedo, &density)
                         .iter()
-                        .map(|a| {
-                            let v = a.values.iter().zip(&rho.values).map(|(a, r)| a * r);
-                            GaussianPyramid::new(&TexelMap::new(a.nx, a.ny, a.texel, v.collect())?)
-                        })
+                        .map(GaussianPyramid::new)
                         .collect::<Result<_>>()?,
                     Some(GaussianPyramid::new(rho)?),
                 ),
@@ -401,17 +397,9 @@ impl SvBssrdf {
             None
         };
         let rows = (method == Method::Ellipse).then(|| Rows {
-            rho_alpha: albedo
-                .iter()
-                .map(|a| {
-                    let mut m = a.clone();
-                    if let Density::Map(rho) = &density {
-                        for (v, r) in m.values.iter_mut().zip(&rho.values) {
-                            *v *= r;
-                        }
-                    }
-                    RowPrefix::new(m)
-                })
+            rho_alpha: density_weighted(&albedo, &density)
+                .into_iter()
+                .map(RowPrefix::new)
                 .collect(),
             rho: match &density {
                 Density::Map(rho) => Some(RowPrefix::new(rho.clone())),
@@ -499,24 +487,24 @@ impl SvBssrdf {
             [1.0, 0.0]
         };
         let frame = Frame { xi, axis };
-        self.kernel(
-            VertexClass::All,
-            d,
-            0.5 * (ai + ae),
-            rho0,
-            &mut scratch.kernel,
-        );
+        self.all_kernel(d, 0.5 * (ai + ae), rho0, &mut scratch.kernel);
         let (mut alpha_t, mut rho_bar) = self.aggregate(c, &frame, &scratch.kernel);
         if self.variant.two_pass {
-            self.kernel(VertexClass::All, d, alpha_t, rho_bar, &mut scratch.kernel);
+            self.all_kernel(d, alpha_t, rho_bar, &mut scratch.kernel);
             (alpha_t, rho_bar) = self.aggregate(c, &frame, &scratch.kernel);
         }
         let (mut li, mut le) = (ai, ae);
-        if self.variant.vertex_kernels {
+        // A point vertex kernel (manual's both; learned's first under normal
+        // incidence, `first: None`) aggregates to the point albedo in hand.
+        if let (true, Method::Learned, Some(meta)) =
+            (self.variant.vertex_kernels, self.method, &self.meta)
+        {
             let a0 = 0.5 * (ai + ae);
-            self.kernel(VertexClass::First, d, a0, rho0, &mut scratch.kernel);
-            li = self.aggregate(c, &frame, &scratch.kernel).0;
-            self.kernel(VertexClass::Last, d, a0, rho0, &mut scratch.kernel);
+            if let Some(first) = &meta.first {
+                first.eval_into(d, a0, rho0, &mut scratch.kernel);
+                li = self.aggregate(c, &frame, &scratch.kernel).0;
+            }
+            meta.last.eval_into(d, a0, rho0, &mut scratch.kernel);
             le = self.aggregate(c, &frame, &scratch.kernel).0;
         }
         let b = &*self.basis;
@@ -524,29 +512,16 @@ impl SvBssrdf {
         rho_bar * rho_bar * (ai * single + li * le * multi)
     }
 
-    /// The kernel of `class` at (d, α₀, ρ₀) in physical MFP, into `out`.
+    /// The all-vertex kernel at (d, α₀, ρ₀) in physical MFP, into `out`:
+    /// the meta-model's for `learned`, else the manual kernel (design §4) at
+    /// the optical distance ρ₀d with lengths divided by ρ₀ (the density law).
     #[inline]
-    fn kernel(&self, class: VertexClass, d: f64, alpha0: f64, rho0: f64, out: &mut Gmm) {
+    fn all_kernel(&self, d: f64, alpha0: f64, rho0: f64, out: &mut Gmm) {
         match (self.method, &self.meta) {
-            (Method::Learned, Some(meta)) => match (class, &meta.first) {
-                (VertexClass::All, _) => {
-                    meta.all.eval_into(d, alpha0, rho0, out);
-                }
-                (VertexClass::Last, _) => {
-                    meta.last.eval_into(d, alpha0, rho0, out);
-                }
-                (VertexClass::First, Some(m)) => {
-                    m.eval_into(d, alpha0, rho0, out);
-                }
-                (VertexClass::First, None) => point_kernel(0.0, out),
-            },
-            _ => match class {
-                // The manual kernel (design §4) at the optical distance ρ₀d,
-                // lengths divided by ρ₀ (the density law).
-                VertexClass::All => manual_into(d * rho0, 1.0 / rho0, out),
-                VertexClass::First => point_kernel(0.0, out),
-                VertexClass::Last => point_kernel(d, out),
-            },
+            (Method::Learned, Some(meta)) => {
+                meta.all.eval_into(d, alpha0, rho0, out);
+            }
+            _ => manual_into(d * rho0, 1.0 / rho0, out),
         }
     }
 
@@ -736,6 +711,24 @@ struct Rows {
     rho: Option<RowPrefix>,
 }
 
+/// The albedo channels times the density map, texel by texel (ρα); the
+/// albedo itself for a constant density (which cancels in every average).
+/// The maps share one grid ([`common_grid`]).
+fn density_weighted(albedo: &[TexelMap], density: &Density) -> Vec<TexelMap> {
+    albedo
+        .iter()
+        .map(|a| {
+            let mut m = a.clone();
+            if let Density::Map(rho) = density {
+                for (v, r) in m.values.iter_mut().zip(&rho.values) {
+                    *v *= r;
+                }
+            }
+            m
+        })
+        .collect()
+}
+
 /// The maps resampled onto one texel grid that refines all of them, so that
 /// every fine texel lies inside one texel of each map (then the resampling
 /// is exact): centred, half-width the largest of the maps', spacing τ, or
@@ -791,19 +784,6 @@ impl Frame {
             self.xi[1] + c.t * uy + c.s * ux,
         ]
     }
-}
-
-/// A single narrow component at t (a point read through the pyramid's exact
-/// window).
-#[inline]
-fn point_kernel(t: f64, out: &mut Gmm) {
-    out.components.clear();
-    out.components.push(Component {
-        weight: 1.0,
-        t,
-        s: 0.0,
-        sigma: crate::metamodel::meta::DELTA_SIGMA,
-    });
 }
 
 /// [`crate::metamodel::kernel::manual_kernel`] at optical distance `d1`,
