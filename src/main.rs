@@ -78,10 +78,18 @@ enum Command {
     },
     /// Render a scene with every method and the brute-force reference.
     Render(RenderArgs),
-    /// Error against wall time of every method and of the reference, as
-    /// their budgets grow, against a high-budget reference (the truth).
+    /// Render the reference and every method, measure each against the
+    /// reference, and draw error against wall time as budgets grow against
+    /// a high-budget truth; writes compare.json, report.html (self-contained)
+    /// and report.md.
     Compare {
         scene: PathBuf,
+        /// Samples per pixel of the main render (default: the scene's).
+        #[arg(long)]
+        spp: Option<u32>,
+        /// Reference paths of the main render (default: the scene's).
+        #[arg(long, value_parser = parse_count)]
+        paths: Option<u64>,
         /// Paths of the truth (independent seed).
         #[arg(long, default_value = "2e7", value_parser = parse_count)]
         truth_paths: u64,
@@ -91,6 +99,12 @@ enum Command {
         /// Reference paths, one render each.
         #[arg(long, value_delimiter = ',', default_value = "1e5,1e6,1e7", value_parser = parse_count)]
         paths_list: Vec<u64>,
+        /// Skip the error-vs-time curves.
+        #[arg(long)]
+        no_curves: bool,
+        /// Render everything in full, even effects the scene does not call for.
+        #[arg(long)]
+        no_analysis: bool,
         /// uniform | importance | mis
         #[arg(long, default_value = "importance")]
         sampling: String,
@@ -128,6 +142,11 @@ struct RenderArgs {
     /// uniform | importance | mis
     #[arg(long, default_value = "importance")]
     sampling: String,
+    /// Render everything in full, even effects the scene does not call
+    /// for (grey RGB as three channels, a constant density map through a
+    /// pyramid, a homogeneous material through every method's machinery).
+    #[arg(long)]
+    no_analysis: bool,
     /// Kernel-method variant: not density-scaled aggregation.
     #[arg(long)]
     plain: bool,
@@ -608,17 +627,17 @@ fn demo(out: PathBuf, paths: u64) -> Result<()> {
     }
     println!("wrote {} and {}", r.json.display(), r.plot.display());
     println!(
-        "rendering {} (64 spp importance sampling, reference 4e6 paths, 64² pixels):",
+        "comparing {} (64 spp importance sampling, reference 4e6 paths, 64² pixels, error-vs-time curves):",
         svkernel::demo::DEMO_SCENES.join(", ")
     );
-    let scenes = svkernel::demo::render_scenes(&out, std::io::stderr().is_terminal())?;
-    println!("  {:<8} {}", "scene", method_header());
-    for (name, doc) in &scenes {
-        for m in doc["passes"][0]["methods"].as_array().into_iter().flatten() {
-            println!("  {name:<8} {}", method_row(m));
-        }
-        println!("  wrote {}/{name}/main/row.png", out.display());
+    let scenes = svkernel::demo::compare_scenes(&out, std::io::stderr().is_terminal())?;
+    for (name, c) in &scenes {
+        print_comparison(name, &c.doc);
     }
+    println!(
+        "wrote {0}/index.html (self-contained report), {0}/index.md, and per scene {0}/<scene>/report.html",
+        out.display()
+    );
     Ok(())
 }
 
@@ -869,64 +888,83 @@ fn profile_query(albedo: f64, radii: &[f64], model: &std::path::Path) -> Result<
     Ok(())
 }
 
-/// `svkernel compare`: error-vs-time curves (JSON, PNG, table).
-fn compare(
-    scene: &std::path::Path,
-    truth_paths: u64,
-    spps: &[u32],
-    paths: &[u64],
-    sampling: &str,
+/// `svkernel compare` (flags of [`Command::Compare`]).
+struct CompareArgs {
+    scene: PathBuf,
+    spp: Option<u32>,
+    paths: Option<u64>,
+    curves: Option<(u64, Vec<u32>, Vec<u64>)>,
+    analysis: bool,
+    sampling: String,
     seed: u64,
     out: PathBuf,
-) -> Result<()> {
-    use svkernel::render::compare::{error_vs_time, plot_curves};
+}
+
+/// `svkernel compare`: metrics, images, curves and the report.
+fn compare(a: CompareArgs) -> Result<()> {
+    use svkernel::render::compare::{CompareSettings, compare_scene};
     use svkernel::render::estimator::Sampling;
     use svkernel::render::job::RenderOptions;
-    let scene = svkernel::render::scene::Scene::load(scene)?;
+    let scene = svkernel::render::scene::Scene::load(&a.scene)?;
+    if a.spp == Some(0) {
+        bail!("invalid --spp = 0: must be >= 1");
+    }
     let opts = RenderOptions {
-        sampling: Sampling::parse(sampling)?,
-        seed,
+        sampling: Sampling::parse(&a.sampling)?,
+        seed: a.seed,
+        spp: a.spp,
+        reference_paths: a.paths,
+        analysis: a.analysis,
         run: RunOptions {
             progress: std::io::stderr().is_terminal(),
             ..Default::default()
         },
-        ..RenderOptions::new(out.clone())
+        ..RenderOptions::new(a.out.clone())
     };
-    let (curves, truth_s) = error_vs_time(&scene, &opts, truth_paths, spps, paths)?;
-    let doc = serde_json::json!({
-        "format": "svkernel.error_time",
-        "version": 1,
-        "scene": scene.path,
-        "truth_paths": truth_paths,
-        "truth_wall_s": truth_s,
-        "sampling": sampling,
-        "error": "relative RMSE against the truth, the truth's variance subtracted, the method's noise included",
-        "curves": curves,
-        "provenance": Provenance::current(),
-    });
-    svkernel::io::write_json_atomic(&out.join("error_time.json"), &doc)?;
-    plot_curves(&out.join("error_time.png"), &scene.name, &curves)?;
+    let settings = CompareSettings {
+        curves: a.curves,
+        measure_savings: true,
+    };
+    let c = compare_scene(&scene, &opts, &settings)?;
+    print_comparison(&scene.name, &c.doc);
     println!(
-        "scene {} (truth: {truth_paths} paths, {truth_s:.1} s)",
-        scene.name
-    );
-    println!(
-        "  {:<11} {:>10} {:>9} {:>10}",
-        "method", "budget", "time [s]", "rel RMSE"
-    );
-    for c in &curves {
-        for p in &c.points {
-            println!(
-                "  {:<11} {:>10} {:>9.2} {:>10.4}",
-                c.method, p.budget, p.wall_s, p.rel_rmse
-            );
-        }
-    }
-    println!(
-        "wrote {}/error_time.json, error_time.png and error_time.svg",
-        out.display()
+        "wrote {0}/report.html (self-contained), {0}/report.md, {0}/compare.json",
+        a.out.display()
     );
     Ok(())
+}
+
+/// The terminal summary of one comparison: method table, skipped effects,
+/// error-vs-time speed-ups.
+fn print_comparison(name: &str, doc: &serde_json::Value) {
+    for pass in doc["render"]["passes"].as_array().into_iter().flatten() {
+        println!("scene {name}, pass {}:", pass["tag"].as_str().unwrap_or(""));
+        println!("  {}", method_header());
+        for m in pass["methods"].as_array().into_iter().flatten() {
+            println!("  {}", method_row(m));
+        }
+    }
+    let skipped: Vec<&str> = doc["skipped"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|v| v.as_str())
+        .collect();
+    println!("  skipped: {}", skipped.join(", "));
+    if let Some(s) = doc["savings"]["saved_s"].as_f64() {
+        println!("  the skips saved {s:.2} s (measured)");
+    }
+    for p in doc["curves"]["speedups"].as_array().into_iter().flatten() {
+        println!(
+            "  {:<11} {:>5} spp {:>7.2} s  error {:>6.2} %  reference needs {:>8.2} s  ({:.1}×)",
+            p["method"].as_str().unwrap_or(""),
+            p["budget"],
+            p["wall_s"].as_f64().unwrap_or(0.0),
+            100.0 * p["rel_rmse"].as_f64().unwrap_or(0.0),
+            p["reference_s"].as_f64().unwrap_or(0.0),
+            p["ratio"].as_f64().unwrap_or(0.0),
+        );
+    }
 }
 
 /// Header of the per-method table of `render` and `demo`.
@@ -940,10 +978,10 @@ fn method_header() -> String {
 /// One method of a `render.json` pass: name, time, relative RMSE and bias
 /// against the reference ("—" for the reference itself).
 fn method_row(m: &serde_json::Value) -> String {
-    let f = |k: &str| {
-        m["metrics"][k]
-            .as_f64()
-            .map_or("—".to_string(), |v| format!("{v:.4}"))
+    let f = |k: &str| match m["metrics"][k].as_f64() {
+        None => "—".to_string(),
+        Some(0.0) if k == "rel_rmse" => "< noise".to_string(),
+        Some(v) => format!("{v:.4}"),
     };
     format!(
         "{:<11} {:>9.2} {:>10} {:>10}",
@@ -1005,6 +1043,7 @@ fn render(a: RenderArgs) -> Result<()> {
             progress: std::io::stderr().is_terminal(),
         },
         reference_tallies: a.reference_tallies,
+        analysis: !a.no_analysis,
         out: a.out.clone(),
     };
     let passes = render_scene(&scene, &opts)?;
@@ -1035,21 +1074,26 @@ fn main() -> std::process::ExitCode {
         Command::Render(a) => render(a),
         Command::Compare {
             scene,
+            spp,
+            paths,
             truth_paths,
             spp_list,
             paths_list,
+            no_curves,
+            no_analysis,
             sampling,
             seed,
             out,
-        } => compare(
-            &scene,
-            truth_paths,
-            &spp_list,
-            &paths_list,
-            &sampling,
+        } => compare(CompareArgs {
+            scene,
+            spp,
+            paths,
+            curves: (!no_curves).then_some((truth_paths, spp_list, paths_list)),
+            analysis: !no_analysis,
+            sampling,
             seed,
             out,
-        ),
+        }),
         Command::Demo { out, paths } => demo(out, paths),
         Command::Fit(f) => fit(f),
         Command::Profile {

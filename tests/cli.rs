@@ -347,7 +347,8 @@ fn render_reference_shards_merge_and_bad_input() {
 }
 
 /// The README's first command end to end (fewer profile paths): the
-/// profile, the plots, and both demo scenes rendered with every method.
+/// profile, the plots, both demo scenes compared with every method, and
+/// one self-contained HTML report.
 #[test]
 fn demo_runs_end_to_end() {
     let d = tmpdir("demo");
@@ -368,15 +369,29 @@ fn demo_runs_end_to_end() {
             let e = m["metrics"]["rel_rmse"].as_f64().unwrap();
             assert!(e.is_finite() && e >= 0.0, "{scene}: {m}");
         }
-        assert!(stdout.contains(&format!("{scene}  learned")), "{stdout}");
+        assert!(
+            stdout.contains(&format!("scene {scene}, pass main")),
+            "{stdout}"
+        );
+        let c = json(&d.join(scene).join("compare.json"));
+        assert_eq!(c["curves"]["speedups"].as_array().unwrap().len(), 6);
     }
+    let html = std::fs::read_to_string(d.join("index.html")).unwrap();
+    // Self-contained: every image inline, none linked.
+    let imgs = html.matches("<img ").count();
+    assert!(imgs >= 2 * 14 + 2, "{imgs} images");
+    assert_eq!(html.matches("src=\"data:image/").count(), imgs);
+    assert!(html.contains("What accuracy costs in time") && html.contains("learned"));
+    let md = std::fs::read_to_string(d.join("index.md")).unwrap();
+    assert!(md.contains("](stripes/main/learned.png)"), "{md}");
     std::fs::remove_dir_all(&d).unwrap();
 }
 
-/// `compare`: the error-vs-time curves of a small scene; the reference's
-/// error falls with its budget, and every model method has a curve.
+/// `compare`: metrics, report and the error-vs-time curves of a small
+/// scene; the reference's error falls with its budget, and every model
+/// method has a curve.
 #[test]
-fn compare_writes_error_time_curves() {
+fn compare_writes_metrics_curves_and_report() {
     let d = tmpdir("compare");
     let scene = d.join("s.toml");
     std::fs::write(
@@ -401,8 +416,8 @@ fn compare_writes_error_time_curves() {
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let doc = json(&d.join("error_time.json"));
-    let curves = doc["curves"].as_array().unwrap();
+    let doc = json(&d.join("compare.json"));
+    let curves = doc["curves"]["curves"].as_array().unwrap();
     let names: Vec<&str> = curves
         .iter()
         .map(|c| c["method"].as_str().unwrap())
@@ -416,6 +431,20 @@ fn compare_writes_error_time_curves() {
     assert!(d.join("error_time.png").exists());
     let svg = std::fs::read_to_string(d.join("error_time.svg")).unwrap();
     assert!(svg.starts_with("<svg") && svg.contains("learned"));
+    // The main render's metrics, per channel, and the report.
+    let methods = doc["render"]["passes"][0]["methods"].as_array().unwrap();
+    assert_eq!(methods.len(), 3);
+    let learned = &methods[2]["metrics"];
+    assert_eq!(learned["channels"].as_array().unwrap().len(), 1);
+    assert_eq!(learned["channels"][0]["rel_bias"], learned["rel_bias"]);
+    let skipped = doc["skipped"].as_array().unwrap();
+    assert!(
+        skipped.iter().any(|e| e == "density pyramid"),
+        "{skipped:?}"
+    );
+    let html = std::fs::read_to_string(d.join("report.html")).unwrap();
+    assert!(html.contains("<table>") && !html.contains("src=\"main/"));
+    assert!(d.join("report.md").exists());
     std::fs::remove_dir_all(&d).unwrap();
 }
 

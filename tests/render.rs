@@ -4,6 +4,7 @@
 
 use std::path::{Path, PathBuf};
 use svkernel::forward::runner::{RunOptions, Shard, Tally, chunk_range, run};
+use svkernel::render::analysis::analyse;
 use svkernel::render::estimator::{Image, Sampling};
 use svkernel::render::job::{RenderOptions, Target, render_scene};
 use svkernel::render::reference::Reference;
@@ -40,6 +41,10 @@ fn window_mean(img: &Image) -> (f64, f64) {
     (m, e)
 }
 
+/// The full machinery (analysis off: pyramids, line and ellipse averages,
+/// kernels) collapses to the homogeneous profile on a constant albedo and
+/// density, which is what the analysis renders instead (every method as
+/// `point`, no pyramid).
 #[test]
 fn every_method_collapses_to_the_homogeneous_profile_on_a_constant_albedo() {
     let p = scene_file(
@@ -47,6 +52,7 @@ fn every_method_collapses_to_the_homogeneous_profile_on_a_constant_albedo() {
         r#"
 texel = 0.1
 albedo = { constant = 0.8 }
+density = { constant = 1.5 }
 [light]
 radius = 1.0
 [image]
@@ -55,15 +61,78 @@ half_width = 2.0
 "#,
     );
     let scene = Scene::load(&p).unwrap();
-    let passes = render_scene(&scene, &options(all_models(), 16, 1, "constant")).unwrap();
-    let imgs: Vec<&Image> = passes[0].rendered.iter().map(|r| &r.image).collect();
-    for (r, img) in passes[0].rendered.iter().zip(&imgs) {
-        for (a, b) in img.mean.iter().zip(&imgs[0].mean) {
+    let plan = analyse(&scene, true);
+    assert!(
+        plan.homogeneous && plan.constant_density == Some(1.5),
+        "{plan:?}"
+    );
+    let skipped: Vec<&str> = plan.skipped().map(|e| e.name).collect();
+    assert!(skipped.contains(&"albedo aggregation") && skipped.contains(&"density pyramid"));
+    let full = RenderOptions {
+        analysis: false,
+        ..options(all_models(), 16, 1, "constant")
+    };
+    let full = render_scene(&scene, &full).unwrap();
+    let skips = render_scene(&scene, &options(all_models(), 16, 1, "constant")).unwrap();
+    let point = &full[0].rendered[0].image;
+    for (f, s) in full[0].rendered.iter().zip(&skips[0].rendered) {
+        assert_eq!(f.target, s.target);
+        for ((a, b), c) in f.image.mean.iter().zip(&point.mean).zip(&s.image.mean) {
+            let name = f.target.name();
+            assert!((a - b).abs() <= 1e-9 * b.abs(), "{name}: {a} vs point {b}");
             assert!(
-                (a - b).abs() <= 1e-9 * b.abs(),
-                "{}: {a} vs point {b}",
-                r.target.name()
+                (a - c).abs() <= 1e-9 * c.abs(),
+                "{name}: full {a} vs skipped {c}"
             );
+        }
+    }
+}
+
+/// A grey map written as RGB renders one channel; the full three-channel
+/// render (models and reference) repeats that channel bitwise. A constant
+/// density map renders as the constant, without a pyramid, to rounding.
+#[test]
+fn grey_rgb_renders_one_channel_and_constant_density_no_pyramid() {
+    let p = scene_file(
+        "grey_rgb",
+        r#"
+texel = 0.1
+albedo = { pattern = "stripes", values = [[0.3, 0.3, 0.3], [0.9, 0.9, 0.9]], width = 0.5 }
+density = { pattern = "stripes", values = [2.0, 2.0], width = 0.5 }
+[light]
+radius = 1.0
+[image]
+resolution = 8
+half_width = 2.0
+"#,
+    );
+    let scene = Scene::load(&p).unwrap();
+    let plan = analyse(&scene, true);
+    assert!(plan.grey && plan.constant_density == Some(2.0) && !plan.homogeneous);
+    let mut targets = all_models();
+    targets.insert(0, Target::Reference);
+    let skips = render_scene(&scene, &options(targets.clone(), 8, 20_000, "grey1")).unwrap();
+    let full = RenderOptions {
+        analysis: false,
+        ..options(targets, 8, 20_000, "grey3")
+    };
+    let full = render_scene(&scene, &full).unwrap();
+    for (s, f) in skips[0].rendered.iter().zip(&full[0].rendered) {
+        let name = f.target.name();
+        assert_eq!((s.image.channels, f.image.channels), (1, 3), "{name}");
+        let n2 = 64;
+        for c in 0..3 {
+            let fc = &f.image.mean[c * n2..(c + 1) * n2];
+            if f.target == Target::Reference {
+                assert_eq!(fc, &s.image.mean[..], "reference channel {c}");
+            } else {
+                for (a, b) in fc.iter().zip(&s.image.mean) {
+                    assert!(
+                        (a - b).abs() <= 1e-9 * b.abs(),
+                        "{name} channel {c}: {a} vs {b}"
+                    );
+                }
+            }
         }
     }
 }

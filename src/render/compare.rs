@@ -12,13 +12,15 @@
 //! the reference's keeps falling, and where it crosses a model's curve is
 //! how long brute force needs to match that model.
 
+use super::analysis::analyse;
 use super::estimator::Image;
-use super::job::{RenderOptions, Target, render_scene};
+use super::job::{RenderOptions, Target, render_scene, write_outputs};
+use super::report::{Block, write_report};
 use super::scene::Scene;
 use super::svbssrdf::Method;
 use crate::error::{Error, Result};
 use serde::Serialize;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// One point of a curve: the budget (samples per pixel, or reference
 /// paths), the wall time it took and the error.
@@ -147,4 +149,476 @@ pub fn plot_curves(path: &Path, scene: &str, curves: &[Curve]) -> Result<()> {
     };
     chart(path, &axes, &series)?;
     chart_svg(&path.with_extension("svg"), &axes, &series)
+}
+
+/// The reference's wall time to reach relative error `e`, read off its
+/// curve: log-log interpolation between its points, and beyond them the
+/// Monte Carlo law e ∝ t^(−1/2) from the nearest end point.
+pub fn reference_time_for(reference: &Curve, e: f64) -> Option<f64> {
+    let mut pts: Vec<(f64, f64)> = reference
+        .points
+        .iter()
+        .filter(|p| p.rel_rmse > 0.0 && p.wall_s > 0.0)
+        .map(|p| (p.wall_s, p.rel_rmse))
+        .collect();
+    pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let (first, last) = (*pts.first()?, *pts.last()?);
+    if !(e > 0.0) {
+        return None;
+    }
+    if e >= first.1 {
+        return Some(first.0 * (first.1 / e).powi(2));
+    }
+    if e <= last.1 {
+        return Some(last.0 * (last.1 / e).powi(2));
+    }
+    pts.windows(2).find_map(|w| {
+        let ((t0, e0), (t1, e1)) = (w[0], w[1]);
+        let between = (e1..=e0).contains(&e) || (e0..=e1).contains(&e);
+        (between && e0 != e1).then(|| {
+            let f = (e.ln() - e0.ln()) / (e1.ln() - e0.ln());
+            (t0.ln() + f * (t1.ln() - t0.ln())).exp()
+        })
+    })
+}
+
+/// How much faster a model is than brute force at the model's own error.
+#[derive(Clone, Debug, Serialize)]
+pub struct Speedup {
+    pub method: String,
+    /// The model point with the largest ratio: its budget (spp), time and
+    /// error.
+    pub budget: u64,
+    pub wall_s: f64,
+    pub rel_rmse: f64,
+    /// Reference time to the same error ([`reference_time_for`]).
+    pub reference_s: f64,
+    /// `reference_s / wall_s`.
+    pub ratio: f64,
+    /// The model's lowest error over its budgets (its floor, bias-bound).
+    pub floor: f64,
+}
+
+/// Per model curve: the point where it beats brute force by the most.
+pub fn speedups(curves: &[Curve]) -> Vec<Speedup> {
+    let Some(reference) = curves.iter().find(|c| c.method == "reference") else {
+        return Vec::new();
+    };
+    curves
+        .iter()
+        .filter(|c| c.method != "reference")
+        .filter_map(|c| {
+            let floor = c
+                .points
+                .iter()
+                .map(|p| p.rel_rmse)
+                .fold(f64::INFINITY, f64::min);
+            c.points
+                .iter()
+                .filter_map(|p| {
+                    let t = reference_time_for(reference, p.rel_rmse)?;
+                    Some(Speedup {
+                        method: c.method.clone(),
+                        budget: p.budget,
+                        wall_s: p.wall_s,
+                        rel_rmse: p.rel_rmse,
+                        reference_s: t,
+                        ratio: t / p.wall_s.max(1e-9),
+                        floor,
+                    })
+                })
+                .max_by(|a, b| a.ratio.total_cmp(&b.ratio))
+        })
+        .collect()
+}
+
+/// What `compare` does besides the main render.
+#[derive(Clone, Debug)]
+pub struct CompareSettings {
+    /// Error-vs-time curves: truth paths, model spp list, reference paths
+    /// list; `None` skips them.
+    pub curves: Option<(u64, Vec<u32>, Vec<u64>)>,
+    /// Measure what the analysis's skips saved (a second render with the
+    /// analysis off), when it skipped anything.
+    pub measure_savings: bool,
+}
+
+/// A finished comparison: the `compare.json` document and the report's
+/// blocks (the demo gathers several into one page).
+pub struct Comparison {
+    pub doc: serde_json::Value,
+    pub blocks: Vec<Block>,
+}
+
+/// `svkernel compare` on one scene into `opts.out`: the reference and every
+/// method with metrics and images ([`super::job`]), the error-vs-time
+/// curves, the scene analysis and what its skips saved; writes
+/// `compare.json`, `report.html` (self-contained) and `report.md`.
+pub fn compare_scene(
+    scene: &Scene,
+    opts: &RenderOptions,
+    settings: &CompareSettings,
+) -> Result<Comparison> {
+    let plan = analyse(scene, opts.analysis);
+    let passes = render_scene(scene, opts)?;
+    let render = write_outputs(scene, opts, &passes)?;
+    super::output::write_colorbar(&opts.out.join("colorbar.png"), 256, 12)?;
+    let (curves, truth_s) = match &settings.curves {
+        Some((truth, spps, paths)) => {
+            let mut o = opts.clone();
+            o.out = opts.out.join("curves");
+            let (c, t) = error_vs_time(scene, &o, *truth, spps, paths)?;
+            plot_curves(&opts.out.join("error_time.png"), &scene.name, &c)?;
+            (c, Some(t))
+        }
+        None => (Vec::new(), None),
+    };
+    let savings = if settings.measure_savings && plan.skips_work() {
+        Some(measure_savings(scene, opts)?)
+    } else {
+        None
+    };
+    let doc = serde_json::json!({
+        "format": "svkernel.compare",
+        "version": 1,
+        "scene": scene.path,
+        "scene_name": scene.name,
+        "analysis": plan,
+        "skipped": plan.skipped().map(|e| e.name).collect::<Vec<_>>(),
+        "savings": savings,
+        "render": render,
+        "curves": {
+            "truth_paths": settings.curves.as_ref().map(|c| c.0),
+            "truth_wall_s": truth_s,
+            "error": "relative RMSE against the truth (independent seed), the truth's variance subtracted, the method's noise included",
+            "curves": curves,
+            "speedups": speedups(&curves),
+        },
+        "provenance": crate::provenance::Provenance::current(),
+    });
+    crate::io::write_json_atomic(&opts.out.join("compare.json"), &doc)?;
+    let blocks = report_blocks(&doc, &opts.out);
+    write_report(
+        &opts.out,
+        "report",
+        &format!("svkernel compare: {}", scene.name),
+        &blocks,
+    )?;
+    Ok(Comparison { doc, blocks })
+}
+
+/// Renders the scene twice at the same settings, with the analysis on and
+/// off (reference at ≤ 1e6 paths, its times scaled to the full count), and
+/// returns each target's measured saving.
+fn measure_savings(scene: &Scene, opts: &RenderOptions) -> Result<serde_json::Value> {
+    let paths = opts.reference_paths.unwrap_or(scene.reference_paths);
+    let probe = paths.min(1_000_000);
+    let dir = opts.out.join("savings");
+    let mut times: Vec<Vec<(Target, f64)>> = Vec::new();
+    for analysis in [true, false] {
+        let o = RenderOptions {
+            analysis,
+            reference_paths: Some(probe),
+            out: dir.clone(),
+            run: Default::default(),
+            reference_tallies: Vec::new(),
+            shard: None,
+            ..opts.clone()
+        };
+        let t = render_scene(scene, &o)?
+            .iter()
+            .flat_map(|p| p.rendered.iter().map(|r| (r.target, r.wall_s)))
+            .fold(Vec::<(Target, f64)>::new(), |mut acc, (t, s)| {
+                match acc.iter_mut().find(|(u, _)| *u == t) {
+                    Some((_, v)) => *v += s,
+                    None => acc.push((t, s)),
+                }
+                acc
+            });
+        times.push(t);
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+    let scale = paths as f64 / probe as f64;
+    let mut total = 0.0;
+    let targets: Vec<serde_json::Value> = times[0]
+        .iter()
+        .zip(&times[1])
+        .map(|(&(t, on), &(_, off))| {
+            let k = if t == Target::Reference { scale } else { 1.0 };
+            total += k * (off - on);
+            serde_json::json!({
+                "method": t.name(),
+                "with_skips_s": k * on,
+                "without_skips_s": k * off,
+                "saved_s": k * (off - on),
+            })
+        })
+        .collect();
+    Ok(serde_json::json!({
+        "how": format!("the same render with the analysis off; reference timed at {probe} paths and scaled to {paths}"),
+        "saved_s": total,
+        "targets": targets,
+    }))
+}
+
+/// The report of one comparison (module docs of [`super::report`]).
+pub fn report_blocks(doc: &serde_json::Value, out: &Path) -> Vec<Block> {
+    use super::report::{err, num, pct};
+    let s = |v: &serde_json::Value| v.as_str().unwrap_or("").to_string();
+    let render = &doc["render"];
+    let mut b = vec![
+        Block::Heading(2, format!("Scene `{}`", s(&doc["scene_name"]))),
+        Block::Para(format!(
+            "Scene file `{}`; {}² pixels, half-width {} MFP; {} light of radius {} MFP; \
+             observable {}; {} spp, {} sampling, variant `{}`; reference {} paths, seed {}. \
+             Commit `{}`.",
+            s(&render["scene"]),
+            render["resolution"],
+            render["half_width"],
+            s(&render["light"]["kind"]),
+            render["light"]["radius"],
+            s(&render["observable"]),
+            render["spp"],
+            s(&render["sampling"]),
+            match s(&render["variant"]).as_str() {
+                "" => "default: density-scaled, vertex kernels, one pass".to_string(),
+                v => v.trim_start_matches('+').to_string(),
+            },
+            render["reference_paths"],
+            render["seed"],
+            s(&render["provenance"]["git_commit"]),
+        )),
+        Block::Heading(3, "What the scene calls for".into()),
+        Block::Table {
+            header: vec!["effect".into(), "simulated".into(), "why".into()],
+            rows: doc["analysis"]["effects"]
+                .as_array()
+                .into_iter()
+                .flatten()
+                .map(|e| {
+                    vec![
+                        s(&e["name"]),
+                        if e["needed"].as_bool() == Some(true) {
+                            "yes"
+                        } else {
+                            "skipped"
+                        }
+                        .into(),
+                        s(&e["detail"]),
+                    ]
+                })
+                .collect(),
+        },
+    ];
+    match doc["savings"].as_object() {
+        Some(sv) => {
+            b.push(Block::Para(format!(
+                "The skips saved {:.2} s in all (measured: {}).",
+                sv["saved_s"].as_f64().unwrap_or(0.0),
+                s(&sv["how"])
+            )));
+            b.push(Block::Table {
+                header: vec![
+                    "target".into(),
+                    "with skips [s]".into(),
+                    "without [s]".into(),
+                    "saved [s]".into(),
+                ],
+                rows: sv["targets"]
+                    .as_array()
+                    .into_iter()
+                    .flatten()
+                    .map(|t| {
+                        vec![
+                            s(&t["method"]),
+                            num(t["with_skips_s"].as_f64()),
+                            num(t["without_skips_s"].as_f64()),
+                            num(t["saved_s"].as_f64()),
+                        ]
+                    })
+                    .collect(),
+            });
+        }
+        None => b.push(Block::Para(
+            "The skips above are already implied by how the scene is written (a grey map, no \
+             density map, one light kind): the renderer avoids no further work here, so no \
+             second render was timed."
+                .into(),
+        )),
+    }
+    for pass in render["passes"].as_array().into_iter().flatten() {
+        let tag = s(&pass["tag"]);
+        let dir = out.join(&tag);
+        let methods: Vec<&serde_json::Value> =
+            pass["methods"].as_array().into_iter().flatten().collect();
+        let names: Vec<String> = methods.iter().map(|m| s(&m["method"])).collect();
+        let white = pass["white_point"].as_f64().unwrap_or(f64::NAN);
+        b.push(Block::Heading(
+            3,
+            match pass["density"].as_f64() {
+                Some(r) => format!("Pass `{tag}` (ρ = {r})"),
+                None => "Images".into(),
+            },
+        ));
+        b.push(Block::Images {
+            items: names
+                .iter()
+                .map(|n| (n.clone(), dir.join(format!("{n}.png"))))
+                .collect(),
+            width: 160,
+        });
+        let diffs: Vec<(String, PathBuf)> = names
+            .iter()
+            .filter(|n| *n != "reference" && dir.join(format!("{n}_diff.png")).exists())
+            .map(|n| {
+                (
+                    format!("{n} − reference"),
+                    dir.join(format!("{n}_diff.png")),
+                )
+            })
+            .collect();
+        if !diffs.is_empty() {
+            b.push(Block::Images {
+                items: diffs,
+                width: 160,
+            });
+            b.push(Block::Figure {
+                caption: format!(
+                    "signed difference, channel mean: blue −{0:.4} … white 0 … red +{0:.4} \
+                     (±25 % of the white point {1:.4})",
+                    0.25 * white,
+                    white
+                ),
+                path: out.join("colorbar.png"),
+            });
+        }
+        let channels = methods
+            .iter()
+            .find_map(|m| m["metrics"]["channels"].as_array().map(|c| c.len()))
+            .unwrap_or(0);
+        let names_c: Vec<&str> = if channels == 3 {
+            vec!["R", "G", "B"]
+        } else {
+            vec!["Y"]
+        };
+        let mut header: Vec<String> = ["method", "time [s]", "set-up [s]", "rel RMSE", "rel bias"]
+            .map(String::from)
+            .into();
+        if channels > 1 {
+            header.extend(names_c.iter().map(|c| format!("RMSE {c}")));
+        }
+        b.push(Block::Table {
+            header,
+            rows: methods
+                .iter()
+                .map(|m| {
+                    let mt = &m["metrics"];
+                    let mut row = vec![
+                        s(&m["method"]),
+                        num(m["wall_s"].as_f64()),
+                        num(m["setup_s"].as_f64()),
+                        err(mt["rel_rmse"].as_f64()),
+                        pct(mt["rel_bias"].as_f64()),
+                    ];
+                    if channels > 1 {
+                        row.extend(
+                            (0..channels).map(|c| err(mt["channels"][c]["rel_rmse"].as_f64())),
+                        );
+                    }
+                    row
+                })
+                .collect(),
+        });
+    }
+    b.push(Block::Para(
+        "rel RMSE = √(max(0, Σ(m − r)² − Σ(σ_m² + σ_r²)) / Σr²) over pixels (and channels): \
+         both images' own noise subtracted, so it measures the method's bias pattern \
+         (\"< noise\": below what the two images' noise can resolve; render more samples and \
+         reference paths to resolve it). rel bias = Σ(m − r)/Σr."
+            .into(),
+    ));
+    let curves = &doc["curves"];
+    if curves["curves"].as_array().is_some_and(|c| !c.is_empty()) {
+        b.push(Block::Heading(3, "What accuracy costs in time".into()));
+        b.push(Block::Figure {
+            caption: format!(
+                "error vs wall time against a truth of {} paths ({:.1} s); reference dashed",
+                curves["truth_paths"],
+                curves["truth_wall_s"].as_f64().unwrap_or(0.0)
+            ),
+            path: out.join("error_time.png"),
+        });
+        b.push(Block::Table {
+            header: [
+                "method",
+                "spp",
+                "time [s]",
+                "rel RMSE (noise included)",
+                "reference time to same error [s]",
+                "speed-up",
+                "error floor",
+            ]
+            .map(String::from)
+            .into(),
+            rows: curves["speedups"]
+                .as_array()
+                .into_iter()
+                .flatten()
+                .map(|p| {
+                    vec![
+                        s(&p["method"]),
+                        p["budget"].to_string(),
+                        num(p["wall_s"].as_f64()),
+                        pct(p["rel_rmse"].as_f64()),
+                        num(p["reference_s"].as_f64()),
+                        format!("{:.1}×", p["ratio"].as_f64().unwrap_or(f64::NAN)),
+                        pct(p["floor"].as_f64()),
+                    ]
+                })
+                .collect(),
+        });
+        b.push(Block::Para(
+            "Per model: the budget where it beats brute force by the most. The reference's time \
+             to the same error is read off its curve (log-log interpolation; beyond its points, \
+             e ∝ t^(−1/2)). Errors here include each image's own noise (that is what its time \
+             buys); the floor is the model's lowest error over its budgets."
+                .into(),
+        ));
+    }
+    b
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn curve(name: &str, pts: &[(f64, f64)]) -> Curve {
+        Curve {
+            method: name.into(),
+            points: pts
+                .iter()
+                .map(|&(wall_s, rel_rmse)| CurvePoint {
+                    budget: 1,
+                    wall_s,
+                    rel_rmse,
+                })
+                .collect(),
+        }
+    }
+
+    #[test]
+    fn reference_time_interpolates_and_extrapolates_like_monte_carlo() {
+        let r = curve("reference", &[(1.0, 0.1), (100.0, 0.01)]);
+        // Inside: log-log interpolation (this curve is exactly e = 0.1/√t).
+        let t = reference_time_for(&r, 0.1 / 10f64.sqrt()).unwrap();
+        assert!((t - 10.0).abs() < 1e-9, "{t}");
+        // Below its best error: e ∝ t^(−1/2) from the last point.
+        assert!((reference_time_for(&r, 0.001).unwrap() - 1e4).abs() < 1e-6);
+        // Above its worst: the same law from the first point.
+        assert!((reference_time_for(&r, 1.0).unwrap() - 0.01).abs() < 1e-12);
+        let m = curve("learned", &[(0.5, 0.05), (2.0, 0.02)]);
+        let s = &speedups(&[r, m])[0];
+        // 0.02 costs the reference 25 s: 12.5× at 2 s (4 s at 0.05: 8×).
+        assert!((s.ratio - 12.5).abs() < 1e-9 && s.floor == 0.02, "{s:?}");
+    }
 }

@@ -18,6 +18,7 @@
 //! * `render.json` — scene, settings, per-method timings and errors
 //!   against the reference, provenance.
 
+use super::analysis::analyse;
 use super::estimator::{self, Image, Sampling, Settings, View};
 use super::output;
 use super::reference::{REFERENCE_FORMAT, REFERENCE_VERSION, Reference, ReferenceTally};
@@ -79,6 +80,8 @@ pub struct RenderOptions {
     /// Use these merged reference tallies (one per pass, in pass order)
     /// instead of simulating.
     pub reference_tallies: Vec<PathBuf>,
+    /// Skip the effects the scene does not call for ([`super::analysis`]).
+    pub analysis: bool,
 }
 
 impl RenderOptions {
@@ -100,6 +103,7 @@ impl RenderOptions {
             shard: None,
             run: RunOptions::default(),
             reference_tallies: Vec::new(),
+            analysis: true,
         }
     }
 }
@@ -139,43 +143,85 @@ pub struct Pass {
     pub reference_events_per_s: Option<f64>,
 }
 
-/// Errors of a method image against the reference (issue 7 refines them).
+/// Errors of a method image against the reference, over all channels and
+/// per channel.
 #[derive(Clone, Debug, Serialize)]
 pub struct Metrics {
     /// √(max(0, Σ(m − r)² − Σ(σ_m² + σ_r²))/Σ r²): relative RMSE with both
     /// images' own noise subtracted.
     pub rel_rmse: f64,
-    /// Σ(m − r)/Σ r.
+    /// Σ(m − r)/Σ r: mean relative bias.
+    pub rel_bias: f64,
+    /// The same two numbers per channel (Y, or R, G, B).
+    pub channels: Vec<ChannelMetrics>,
+}
+
+/// [`Metrics`] of one channel.
+#[derive(Clone, Debug, Serialize)]
+pub struct ChannelMetrics {
+    pub rel_rmse: f64,
     pub rel_bias: f64,
 }
 
-/// Relative RMSE and bias of `m` against `r` over all pixels and channels.
-pub fn metrics(m: &Image, r: &Image) -> Metrics {
-    let (diff, sum) = m
-        .mean
-        .iter()
-        .zip(&r.mean)
-        .fold((0.0, 0.0), |(d, s), (a, b)| (d + a - b, s + b));
-    Metrics {
-        rel_rmse: rel_rmse(m, r, true),
+/// Sums over the pixels of channels `cs` of `m` against `r`: squared error,
+/// noise variance (σ_r², plus σ_m² if `own`), Σr², Σ(m − r), Σr.
+fn error_sums(m: &Image, r: &Image, own: bool, cs: std::ops::Range<usize>) -> [f64; 5] {
+    let n2 = r.resolution * r.resolution;
+    let mut s = [0.0; 5];
+    for k in cs.start * n2..cs.end * n2 {
+        let d = m.mean[k] - r.mean[k];
+        s[0] += d * d;
+        s[1] += r.stderr[k].powi(2) + if own { m.stderr[k].powi(2) } else { 0.0 };
+        s[2] += r.mean[k] * r.mean[k];
+        s[3] += d;
+        s[4] += r.mean[k];
+    }
+    s
+}
+
+/// (relative RMSE, relative bias) from [`error_sums`].
+fn from_sums([se, noise, norm, diff, sum]: [f64; 5]) -> ChannelMetrics {
+    ChannelMetrics {
+        rel_rmse: ((se - noise).max(0.0) / norm).sqrt(),
         rel_bias: diff / sum,
     }
+}
+
+/// Relative RMSE and bias of `m` against `r`, overall and per channel
+/// (both images' noise subtracted). A one-channel image against a
+/// three-channel reference (a grey render) is compared with each channel.
+pub fn metrics(m: &Image, r: &Image) -> Metrics {
+    let m = broadcast(m, r.channels);
+    let all = from_sums(error_sums(&m, r, true, 0..r.channels));
+    Metrics {
+        rel_rmse: all.rel_rmse,
+        rel_bias: all.rel_bias,
+        channels: (0..r.channels)
+            .map(|c| from_sums(error_sums(&m, r, true, c..c + 1)))
+            .collect(),
+    }
+}
+
+/// `m` with its single channel repeated to `channels` (a grey render
+/// compared with an RGB one); `m` itself otherwise.
+pub fn broadcast(m: &Image, channels: usize) -> std::borrow::Cow<'_, Image> {
+    if m.channels == channels || m.channels != 1 {
+        return std::borrow::Cow::Borrowed(m);
+    }
+    let mut out = Image::zeros(m.resolution, channels);
+    for c in 0..channels {
+        let n2 = m.resolution * m.resolution;
+        out.mean[c * n2..(c + 1) * n2].copy_from_slice(&m.mean);
+        out.stderr[c * n2..(c + 1) * n2].copy_from_slice(&m.stderr);
+    }
+    std::borrow::Cow::Owned(out)
 }
 
 /// √(max(0, Σ(m − r)² − noise)/Σr²) over all pixels and channels, the noise
 /// being Σσ_r² plus, if `subtract_own_noise`, Σσ_m².
 pub fn rel_rmse(m: &Image, r: &Image, subtract_own_noise: bool) -> f64 {
-    let (mut se, mut noise, mut norm) = (0.0, 0.0, 0.0);
-    for k in 0..r.mean.len() {
-        let d = m.mean[k] - r.mean[k];
-        se += d * d;
-        noise += r.stderr[k].powi(2);
-        if subtract_own_noise {
-            noise += m.stderr[k].powi(2);
-        }
-        norm += r.mean[k] * r.mean[k];
-    }
-    ((se - noise).max(0.0) / norm).sqrt()
+    let m = broadcast(m, r.channels);
+    from_sums(error_sums(&m, r, subtract_own_noise, 0..r.channels)).rel_rmse
 }
 
 /// A content hash of the scene file (FNV-1a, 64 bits, hex): identifies a
@@ -273,14 +319,16 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
         observable: scene.observable,
     };
     let hash = scene_hash(scene)?;
+    let plan = analyse(scene, opts.analysis);
+    let albedo = plan.albedo(scene);
     let mut out = Vec::new();
     for (pass_index, (tag, rho)) in passes(scene).into_iter().enumerate() {
         let density_map = if rho.is_some() {
             None
         } else {
-            scene.density.as_ref()
+            plan.density_map(scene)
         };
-        let constant = rho.unwrap_or(1.0);
+        let constant = rho.or(plan.constant_density).unwrap_or(1.0);
         let mut rendered = Vec::new();
         let mut events_per_s = None;
         for &target in &targets {
@@ -291,7 +339,7 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                     let reference = Reference::new(
                         scene.eta,
                         scene.g,
-                        &scene.albedo,
+                        &albedo,
                         density_map,
                         constant,
                         &scene.light,
@@ -364,12 +412,18 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                         Some(m) => Density::Map(m.clone()),
                         None => Density::Constant(constant),
                     };
+                    // A homogeneous material: every method is the profile.
+                    let evaluated = if plan.homogeneous {
+                        Method::Point
+                    } else {
+                        method
+                    };
                     let sv = SvBssrdf::new(
-                        method,
+                        evaluated,
                         opts.variant,
                         basis.clone().expect("loaded for model targets"),
                         meta.clone(),
-                        scene.albedo.clone(),
+                        albedo.clone(),
                         density,
                     )?;
                     let setup_s = t0.elapsed().as_secs_f64();

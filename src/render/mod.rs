@@ -2,13 +2,16 @@
 //! method ([`svbssrdf`]) with O(1) aggregation ([`pyramid`]), one estimator
 //! for all of them ([`estimator`]), the brute-force reference
 //! ([`reference`]), image output ([`output`]), the `render` job ([`job`])
-//! and error against time ([`compare`]).
+//! error against time ([`compare`]), the scene analysis ([`analysis`]) and
+//! the comparison report ([`report`]).
 
+pub mod analysis;
 pub mod compare;
 pub mod estimator;
 pub mod job;
 pub mod output;
 pub mod pyramid;
 pub mod reference;
+pub mod report;
 pub mod scene;
 pub mod svbssrdf;

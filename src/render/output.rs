@@ -206,6 +206,15 @@ pub fn write_row_png(path: &Path, images: &[&Image], white: f64, range: f64) -> 
     write_png_bytes_wh(path, width, height, true, &data)
 }
 
+/// The colour bar of the difference images: [`diverging`] from −1 (left)
+/// to +1 (right), `width` × `height` pixels.
+pub fn write_colorbar(path: &Path, width: usize, height: usize) -> Result<()> {
+    let row: Vec<u8> = (0..width)
+        .flat_map(|x| diverging(2.0 * (x as f64 + 0.5) / width as f64 - 1.0))
+        .collect();
+    write_png_bytes_wh(path, width, height, true, &row.repeat(height))
+}
+
 /// Blue (−1) → white (0) → red (+1), in sRGB bytes.
 pub fn diverging(t: f64) -> [u8; 3] {
     let (r, g, b) = if t < 0.0 {

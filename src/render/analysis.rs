@@ -1,0 +1,204 @@
+//! Scene analysis: simulate only the effects a scene calls for (issue 7 §4).
+//!
+//! Before rendering, [`analyse`] looks at the loaded maps and the light and
+//! decides what work the scene needs:
+//!
+//! * **channels** — an RGB albedo whose three maps are identical is grey:
+//!   the models and the reference render one channel, not three;
+//! * **density** — a density map with one value everywhere is a constant:
+//!   no density (or ρα) pyramid, no density lookups in the walk;
+//! * **aggregation** — a constant albedo *and* a constant density make the
+//!   material homogeneous: every method collapses to the homogeneous profile
+//!   S = R(r·ρ; α)·ρ² (the split form's α₁R₁(r; 1) + (α_iα_e/α_t²)Rₘ(r; α_t)
+//!   is R₁(r; α) + Rₘ(r; α) when α_i = α_e = α_t = α, because single
+//!   scattering is linear in α), so they are all evaluated as `point`, with
+//!   no pyramid (tested: the collapsed and the full renders agree);
+//! * **incidence** — a diffuse light needs the diffuse-incidence basis, a
+//!   collimated one the collimated basis (only that one is loaded);
+//! * **range** — the (α, ρ·d) the scene can query against the range the
+//!   meta-model was trained on (outside it the meta-model clamps, and says
+//!   so; [`super::extend`] simulates and fits the missing range).
+//!
+//! The reference walk only tallies the image region (paths are walked
+//! wherever they go: exits outside the image are not stored).
+//!
+//! [`analyse`] is cheap (one pass over the texels) and pure, so the renderer
+//! and the report each call it; `RenderOptions::analysis = false` turns the
+//! skips off (the full machinery, for measuring what the skips save).
+
+use super::scene::{LightKind, Scene};
+use crate::forward::maps::TexelMap;
+use serde::Serialize;
+
+/// One effect the analysis considered.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct Effect {
+    /// Short name ("rgb channels", "density pyramid", …).
+    pub name: &'static str,
+    /// False: skipped (the scene does not call for it).
+    pub needed: bool,
+    /// Why, in words.
+    pub detail: String,
+}
+
+/// What the scene needs (module docs).
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct Plan {
+    /// Render one channel (grey albedo).
+    pub grey: bool,
+    /// The density map is this constant (skip the density pyramid).
+    pub constant_density: Option<f64>,
+    /// Albedo and density both constant: every method is the homogeneous
+    /// profile.
+    pub homogeneous: bool,
+    /// "pencil" (collimated light) or "diffuse".
+    pub incidence: &'static str,
+    /// Albedo range over all channels and texels.
+    pub albedo_range: [f64; 2],
+    /// Density range (the sweep's or the map's; 1 without either).
+    pub density_range: [f64; 2],
+    /// Longest optical pair distance ρ_max·d_max the image can query (MFP):
+    /// pixel corner to the far edge of the light disk.
+    pub max_optical_distance: f64,
+    pub effects: Vec<Effect>,
+}
+
+/// A map's single value, if every texel holds it.
+fn constant_value(m: &TexelMap) -> Option<f64> {
+    let v0 = m.values[0];
+    m.values.iter().all(|v| *v == v0).then_some(v0)
+}
+
+fn range(values: impl Iterator<Item = f64>) -> [f64; 2] {
+    values.fold([f64::INFINITY, f64::NEG_INFINITY], |[lo, hi], v| {
+        [lo.min(v), hi.max(v)]
+    })
+}
+
+/// Analyses `scene` (module docs). With `skip = false` the plan keeps every
+/// effect (the effects list still says what could have been skipped).
+pub fn analyse(scene: &Scene, skip: bool) -> Plan {
+    let grey = scene.is_grey();
+    let constant_density = match (&scene.density, scene.density_sweep.len()) {
+        (Some(m), _) => constant_value(m),
+        (None, 0) => Some(1.0),
+        // A sweep renders constant densities, one per pass.
+        (None, _) => None,
+    };
+    let albedo_constant = scene.albedo.iter().all(|m| constant_value(m).is_some());
+    // Without a map every pass has a constant density (1 or the sweep's).
+    let homogeneous = albedo_constant && (constant_density.is_some() || scene.density.is_none());
+    let albedo_range = range(scene.albedo.iter().flat_map(|m| m.values.iter().copied()));
+    let density_range = match (&scene.density, scene.density_sweep.is_empty()) {
+        (Some(m), _) => range(m.values.iter().copied()),
+        (None, false) => range(scene.density_sweep.iter().copied()),
+        (None, true) => [1.0, 1.0],
+    };
+    let corner = scene.half_width * std::f64::consts::SQRT_2;
+    let max_optical_distance = density_range[1] * (corner + scene.light_radius);
+    let incidence = match scene.light {
+        LightKind::Collimated => "pencil",
+        LightKind::Diffuse => "diffuse",
+    };
+    let mut effects = vec![
+        Effect {
+            name: "rgb channels",
+            needed: !grey,
+            detail: if scene.albedo.len() == 1 {
+                "the albedo is grey: one channel".into()
+            } else if grey {
+                "the three albedo channels are identical: one channel rendered, not three".into()
+            } else {
+                "the albedo channels differ: three channels".into()
+            },
+        },
+        Effect {
+            name: "density pyramid",
+            needed: scene.density.is_some() && constant_density.is_none(),
+            detail: match (&scene.density, constant_density) {
+                (Some(_), Some(v)) => {
+                    format!("the density map is the constant {v}: no density pyramid")
+                }
+                (Some(_), None) => "the density varies: ρ and ρα pyramids".into(),
+                (None, _) if !scene.density_sweep.is_empty() => {
+                    "constant densities (a sweep): no density pyramid".into()
+                }
+                (None, _) => "no density map (ρ = 1): no density pyramid".into(),
+            },
+        },
+        Effect {
+            name: "albedo aggregation",
+            needed: !homogeneous,
+            detail: if homogeneous {
+                "albedo and density are constant: every method is the homogeneous profile, no pyramid"
+                    .into()
+            } else if albedo_constant {
+                "the albedo is constant but the density varies: density aggregation kept".into()
+            } else {
+                "the albedo varies: kernel aggregation".into()
+            },
+        },
+        Effect {
+            name: "collimated-incidence profile",
+            needed: incidence == "pencil",
+            detail: format!("light is {incidence}: only the {incidence} basis is loaded"),
+        },
+        Effect {
+            name: "diffuse-incidence profile",
+            needed: incidence == "diffuse",
+            detail: format!("light is {incidence}: only the {incidence} basis is loaded"),
+        },
+    ];
+    if !skip {
+        for e in &mut effects[..3] {
+            if !e.needed {
+                e.needed = true;
+                e.detail = format!("analysis off (would skip: {})", e.detail);
+            }
+        }
+    }
+    Plan {
+        grey: skip && grey && scene.albedo.len() > 1,
+        constant_density: if skip && scene.density.is_some() {
+            constant_density
+        } else {
+            None
+        },
+        homogeneous: skip && homogeneous,
+        incidence,
+        albedo_range,
+        density_range,
+        max_optical_distance,
+        effects,
+    }
+}
+
+impl Plan {
+    /// The effects that were skipped.
+    pub fn skipped(&self) -> impl Iterator<Item = &Effect> {
+        self.effects.iter().filter(|e| !e.needed)
+    }
+
+    /// True if the plan avoids work the full renderer would do.
+    pub fn skips_work(&self) -> bool {
+        self.grey || self.constant_density.is_some() || self.homogeneous
+    }
+
+    /// The albedo channels to render: the first one only for a grey plan.
+    pub fn albedo(&self, scene: &Scene) -> Vec<TexelMap> {
+        if self.grey {
+            vec![scene.albedo[0].clone()]
+        } else {
+            scene.albedo.clone()
+        }
+    }
+
+    /// The density map to render with (`None` where the plan makes it a
+    /// constant, see [`Plan::constant_density`]).
+    pub fn density_map<'a>(&self, scene: &'a Scene) -> Option<&'a TexelMap> {
+        match self.constant_density {
+            Some(_) => None,
+            None => scene.density.as_ref(),
+        }
+    }
+}
