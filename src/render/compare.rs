@@ -163,7 +163,7 @@ pub fn reference_time_for(reference: &Curve, e: f64) -> Option<f64> {
         .collect();
     pts.sort_by(|a, b| a.0.total_cmp(&b.0));
     let (first, last) = (*pts.first()?, *pts.last()?);
-    if !(e > 0.0) {
+    if e.is_nan() || e <= 0.0 {
         return None;
     }
     if e >= first.1 {

@@ -232,7 +232,7 @@ fn numeric(cell: &str) -> bool {
 /// error is 0 (the images agree to within their own noise).
 pub fn err(v: Option<f64>) -> String {
     match v {
-        Some(v) if v == 0.0 => "< noise".into(),
+        Some(0.0) => "< noise".into(),
         v => pct(v),
     }
 }
