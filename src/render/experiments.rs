@@ -1,0 +1,442 @@
+//! The open experiments of the design, answered with numbers (issue 7 §3,
+//! and the model-cost side of §2): `svkernel experiments`.
+//!
+//! Every scene's reference is rendered once; each experiment then renders
+//! the model configurations it needs (a configuration shared by several
+//! experiments is rendered once) and measures them against that reference:
+//!
+//! | experiment | scenes | configurations |
+//! |---|---|---|
+//! | methods | all | every method, default variant, importance sampling |
+//! | density | `density`, `features` | learned, manual: density-scaled vs plain |
+//! | vertex | all but `features` | learned: first/last-vertex kernels vs point albedos |
+//! | two-pass | `stripes`, `checker`, `density` | learned: one pass vs α₀ = α_t |
+//! | sampling | `stripes`, `checker`, `density` | learned: uniform, importance, MIS |
+//! | models | `stripes`, `checker` | learned with each `--models` file (K, degrees) |
+//!
+//! Errors are [`super::job::metrics`] (both images' noise subtracted).
+//! Sampling is compared at equal time by the relative noise an image would
+//! have after one second, ν·√t, with ν = √(Σσ²/Σr²) its measured relative
+//! noise and t its wall time (lower is better; the estimator's cost is the
+//! same per sample up to the sampler itself).
+
+use super::estimator::{Image, Sampling};
+use super::job::{RenderOptions, Target, metrics, render_scene};
+use super::report::{Block, err, num, pct};
+use super::scene::Scene;
+use super::svbssrdf::{Method, Variant};
+use crate::error::Result;
+use crate::metamodel::meta::MetaModelFile;
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+
+/// One model configuration.
+#[derive(Clone, Debug, PartialEq)]
+struct Config {
+    method: Method,
+    variant: Variant,
+    sampling: Sampling,
+    /// Meta-model file (`None`: the options' one).
+    model: Option<PathBuf>,
+}
+
+/// One measured configuration on one pass of one scene.
+#[derive(Clone, Debug, Serialize)]
+pub struct Row {
+    pub scene: String,
+    pub pass: String,
+    pub method: &'static str,
+    /// "" for the default variant.
+    pub variant: String,
+    pub sampling: &'static str,
+    pub model: Option<PathBuf>,
+    pub spp: u32,
+    pub wall_s: f64,
+    pub rel_rmse: f64,
+    pub rel_bias: f64,
+    /// √(Σσ²/Σr²): the image's relative noise.
+    pub rel_noise: f64,
+}
+
+/// What to run.
+#[derive(Clone, Debug)]
+pub struct Settings {
+    /// Scene files (their `name` decides which experiments include them).
+    pub scenes: Vec<PathBuf>,
+    /// Meta-model files for the `models` experiment (may be empty).
+    pub models: Vec<PathBuf>,
+}
+
+/// The configurations scene `name` takes part in (module docs).
+fn configs(name: &str, models: &[PathBuf]) -> Vec<Config> {
+    let base = |method| Config {
+        method,
+        variant: Variant::default(),
+        sampling: Sampling::Importance,
+        model: None,
+    };
+    let mut c: Vec<Config> = Method::ALL.into_iter().map(base).collect();
+    let with = |method, f: &dyn Fn(&mut Config)| {
+        let mut k = base(method);
+        f(&mut k);
+        k
+    };
+    if matches!(name, "density" | "features") {
+        for m in [Method::Manual, Method::Learned] {
+            c.push(with(m, &|k| k.variant.plain = true));
+        }
+    }
+    if name != "features" {
+        c.push(with(Method::Learned, &|k| k.variant.vertex_kernels = false));
+    }
+    if matches!(name, "stripes" | "checker" | "density") {
+        // Manual's kernel does not depend on α₀: a second pass changes nothing.
+        c.push(with(Method::Learned, &|k| k.variant.two_pass = true));
+        for s in [Sampling::Uniform, Sampling::Mis] {
+            c.push(with(Method::Learned, &|k| k.sampling = s));
+        }
+    }
+    if matches!(name, "stripes" | "checker") {
+        for m in models {
+            c.push(with(Method::Learned, &|k| k.model = Some(m.clone())));
+        }
+    }
+    c
+}
+
+/// √(Σσ²/Σr²) of `img` against the reference means `r`.
+fn rel_noise(img: &Image, r: &Image) -> f64 {
+    let var: f64 = img.stderr.iter().map(|s| s * s).sum();
+    let norm: f64 = r.mean.iter().map(|v| v * v).sum();
+    (var / norm).sqrt()
+}
+
+/// Runs every experiment (module docs) with `opts`' budgets and returns
+/// the rows; progress lines on stderr if `opts.run.progress`.
+pub fn run(settings: &Settings, opts: &RenderOptions) -> Result<Vec<Row>> {
+    let mut rows = Vec::new();
+    for path in &settings.scenes {
+        let scene = Scene::load(path)?;
+        let out = opts.out.join(&scene.name);
+        let reference = render_scene(
+            &scene,
+            &RenderOptions {
+                targets: vec![Target::Reference],
+                out: out.clone(),
+                ..opts.clone()
+            },
+        )?;
+        for config in configs(&scene.name, &settings.models) {
+            let o = RenderOptions {
+                targets: vec![Target::Model(config.method)],
+                variant: config.variant,
+                sampling: config.sampling,
+                meta: config.model.clone().unwrap_or_else(|| opts.meta.clone()),
+                out: out.clone(),
+                ..opts.clone()
+            };
+            for (pass, r) in render_scene(&scene, &o)?.iter().zip(&reference) {
+                let img = &pass.rendered[0];
+                let reference = &r.rendered[0].image;
+                let m = metrics(&img.image, reference);
+                rows.push(Row {
+                    scene: scene.name.clone(),
+                    pass: super::job::tag_or(&pass.tag).to_string(),
+                    method: config.method.name(),
+                    variant: config.variant.tag(),
+                    sampling: config.sampling.name(),
+                    model: config.model.clone(),
+                    spp: opts.spp.unwrap_or(scene.samples),
+                    wall_s: img.wall_s,
+                    rel_rmse: m.rel_rmse,
+                    rel_bias: m.rel_bias,
+                    rel_noise: rel_noise(&img.image, reference),
+                });
+            }
+        }
+    }
+    Ok(rows)
+}
+
+/// The row of (scene, pass, method, variant, sampling, model).
+fn find<'a>(
+    rows: &'a [Row],
+    key: (&str, &str),
+    method: &str,
+    variant: &str,
+    sampling: &str,
+    model: Option<&Path>,
+) -> Option<&'a Row> {
+    rows.iter().find(|r| {
+        (r.scene.as_str(), r.pass.as_str()) == key
+            && r.method == method
+            && r.variant == variant
+            && r.sampling == sampling
+            && r.model.as_deref() == model
+    })
+}
+
+/// The (scene, pass) keys of the rows, in order of appearance.
+fn passes(rows: &[Row]) -> Vec<(String, String)> {
+    let mut keys: Vec<(String, String)> = Vec::new();
+    for r in rows {
+        let k = (r.scene.clone(), r.pass.clone());
+        if !keys.contains(&k) {
+            keys.push(k);
+        }
+    }
+    keys
+}
+
+fn label((scene, pass): &(String, String)) -> String {
+    if pass == "main" {
+        scene.clone()
+    } else {
+        format!("{scene} {pass}")
+    }
+}
+
+/// A two-way comparison table: per pass and method, the default variant's
+/// error against `variant`'s, and which wins; plus how often `variant` won.
+fn variant_table(
+    rows: &[Row],
+    methods: &[&str],
+    variant: &str,
+    names: [&str; 2],
+) -> (Block, String) {
+    let mut table = Vec::new();
+    let (mut wins, mut n) = (0, 0);
+    for key in passes(rows) {
+        let k = (key.0.as_str(), key.1.as_str());
+        for m in methods {
+            let (Some(a), Some(b)) = (
+                find(rows, k, m, "", "importance", None),
+                find(rows, k, m, variant, "importance", None),
+            ) else {
+                continue;
+            };
+            n += 1;
+            // Within 2 % of each other (relative) is a tie.
+            let better = if (a.rel_rmse - b.rel_rmse).abs() <= 0.02 * a.rel_rmse.max(b.rel_rmse) {
+                "tie"
+            } else if b.rel_rmse < a.rel_rmse {
+                wins += 1;
+                names[1]
+            } else {
+                names[0]
+            };
+            table.push(vec![
+                label(&key),
+                m.to_string(),
+                err(Some(a.rel_rmse)),
+                err(Some(b.rel_rmse)),
+                pct(Some(a.rel_bias)),
+                pct(Some(b.rel_bias)),
+                better.to_string(),
+            ]);
+        }
+    }
+    let header = vec![
+        "scene".into(),
+        "method".into(),
+        format!("rel RMSE, {}", names[0]),
+        format!("rel RMSE, {}", names[1]),
+        format!("bias, {}", names[0]),
+        format!("bias, {}", names[1]),
+        "lower error".into(),
+    ];
+    (
+        Block::Table {
+            header,
+            rows: table,
+        },
+        format!(
+            "{} has the lower error in {wins} of {n} cases (a tie: within 2 % of each other).",
+            names[1]
+        ),
+    )
+}
+
+/// The report's blocks (one section per experiment) and, if the `models`
+/// experiment ran, its error-vs-complexity plot at `plot` (PNG + SVG).
+pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
+    let mut b = vec![
+        Block::Para(
+            "Every number below is measured by the command that follows, against each scene's \
+             brute-force reference; rel RMSE has both images' noise subtracted (\"< noise\": \
+             the method's bias is below what the budgets resolve)."
+                .into(),
+        ),
+        Block::Code(command.to_string()),
+        Block::Heading(2, "Learned vs manual vs the baselines".into()),
+    ];
+    let methods: Vec<&str> = Method::ALL.iter().map(|m| m.name()).collect();
+    let mut header = vec!["scene".to_string()];
+    header.extend(methods.iter().map(|m| m.to_string()));
+    let mut table = Vec::new();
+    let (mut learned_wins, mut manual_wins, mut n) = (0, 0, 0);
+    for key in passes(rows) {
+        let k = (key.0.as_str(), key.1.as_str());
+        let e: Vec<Option<f64>> = methods
+            .iter()
+            .map(|m| find(rows, k, m, "", "importance", None).map(|r| r.rel_rmse))
+            .collect();
+        let mut row = vec![label(&key)];
+        row.extend(e.iter().map(|v| err(*v)));
+        table.push(row);
+        if let [Some(p), Some(f), Some(l), Some(el), Some(ma), Some(le)] = e[..] {
+            n += 1;
+            learned_wins += usize::from(le < ma);
+            manual_wins += usize::from(ma < p.min(f).min(l).min(el));
+        }
+    }
+    b.push(Block::Table {
+        header,
+        rows: table,
+    });
+    b.push(Block::Para(format!(
+        "learned is below manual on {learned_wins} of {n} scenes/passes; manual is below the \
+         best of point/factorized/line/ellipse on {manual_wins} of {n}."
+    )));
+    let sections: [(&str, &[&str], &str, [&str; 2]); 3] = [
+        (
+            "Density-scaled vs plain aggregation",
+            &["manual", "learned"],
+            "+plain",
+            ["density-scaled", "plain"],
+        ),
+        (
+            "First/last-vertex kernels vs point albedos in the local terms",
+            &["learned"],
+            "+point-albedos",
+            ["vertex kernels", "point albedos"],
+        ),
+        (
+            "One extra pass with α₀ = α_t (learned; manual's kernel does not depend on α₀)",
+            &["learned"],
+            "+2pass",
+            ["one pass", "two passes"],
+        ),
+    ];
+    for (title, ms, variant, names) in sections {
+        let (table, summary) = variant_table(rows, ms, variant, names);
+        b.push(Block::Heading(2, title.into()));
+        b.push(table);
+        b.push(Block::Para(summary));
+    }
+    b.push(Block::Heading(
+        2,
+        "Uniform vs importance vs MIS sampling (learned)".into(),
+    ));
+    let mut table = Vec::new();
+    for key in passes(rows) {
+        let k = (key.0.as_str(), key.1.as_str());
+        let cells: Vec<Option<&Row>> = ["uniform", "importance", "mis"]
+            .iter()
+            .map(|s| find(rows, k, "learned", "", s, None))
+            .collect();
+        if cells[0].is_none() {
+            continue;
+        }
+        let mut row = vec![label(&key)];
+        for c in &cells {
+            row.push(pct(c.map(|r| r.rel_noise * r.wall_s.sqrt())));
+        }
+        for c in &cells {
+            row.push(err(c.map(|r| r.rel_rmse)));
+        }
+        table.push(row);
+    }
+    b.push(Block::Table {
+        header: [
+            "scene",
+            "noise at 1 s, uniform",
+            "importance",
+            "MIS",
+            "rel RMSE, uniform",
+            "importance",
+            "MIS",
+        ]
+        .map(String::from)
+        .into(),
+        rows: table,
+    });
+    b.push(Block::Para(
+        "Noise at equal time: ν·√t, the relative noise an image would have after one second \
+         (lower is better). Uniform disk sampling has unbounded variance here (R(r) ~ 1/r at \
+         the pixel: ∫(1/r)² r dr diverges), so its measured noise is itself unreliable."
+            .into(),
+    ));
+    let model_rows: Vec<&Row> = rows.iter().filter(|r| r.model.is_some()).collect();
+    if !model_rows.is_empty() {
+        b.push(Block::Heading(
+            2,
+            "Error vs kernel complexity and meta-model size".into(),
+        ));
+        let mut table = Vec::new();
+        let mut series: Vec<(String, Vec<(f64, f64)>)> = Vec::new();
+        for r in &model_rows {
+            let path = r.model.as_deref().expect("filtered");
+            let m = MetaModelFile::load(path)?;
+            // Every polynomial coefficient of the all- and last-vertex models.
+            let coeffs: usize = [&m.all, &m.last]
+                .iter()
+                .flat_map(|c| c.coeffs.iter().map(Vec::len))
+                .sum();
+            table.push(vec![
+                label(&(r.scene.clone(), r.pass.clone())),
+                path.display().to_string(),
+                m.all.k.to_string(),
+                format!("{}, {}", m.all.deg_x, m.all.deg_y),
+                coeffs.to_string(),
+                num(Some(r.wall_s)),
+                err(Some(r.rel_rmse)),
+                pct(Some(r.rel_bias)),
+            ]);
+            let name = format!("{} (degrees {}, {})", r.scene, m.all.deg_x, m.all.deg_y);
+            let p = (m.all.k as f64, r.rel_rmse.max(1e-4));
+            match series.iter_mut().find(|(s, _)| *s == name) {
+                Some((_, v)) => v.push(p),
+                None => series.push((name, vec![p])),
+            }
+        }
+        b.push(Block::Table {
+            header: [
+                "scene",
+                "meta-model",
+                "K",
+                "degrees (ln d, √(1−α))",
+                "coefficients",
+                "time [s]",
+                "rel RMSE",
+                "rel bias",
+            ]
+            .map(String::from)
+            .into(),
+            rows: table,
+        });
+        use crate::plot::{Axes, Series, chart, chart_svg};
+        let series: Vec<Series> = series
+            .into_iter()
+            .enumerate()
+            .map(|(k, (name, mut pts))| {
+                pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+                Series::line(name, pts, k)
+            })
+            .collect();
+        let axes = Axes {
+            title: "learned: error vs Gaussian components K".into(),
+            x_label: "K".into(),
+            y_label: "relative RMSE vs reference".into(),
+            log_x: false,
+            log_y: true,
+        };
+        chart(plot, &axes, &series)?;
+        chart_svg(&plot.with_extension("svg"), &axes, &series)?;
+        b.push(Block::Figure {
+            caption: "learned's error against K, per scene and polynomial degrees".into(),
+            path: plot.to_path_buf(),
+        });
+    }
+    Ok(b)
+}
