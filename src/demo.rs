@@ -32,6 +32,8 @@ pub struct DemoReport {
 /// repository root, where `cargo run` starts).
 pub const SHIPPED_BASIS: &str = "data/profiles/basis.json";
 pub const SHIPPED_META: &str = "data/profiles/metamodel.json";
+/// The kernel tallies the shipped meta-model was fitted to.
+pub const SHIPPED_KERNELS: &str = "data/kernels/eta1.5_g0.3_pencil.json";
 /// The shipped diffuse-incidence basis model (scenes with a diffuse light).
 pub const SHIPPED_BASIS_DIFFUSE: &str = "data/profiles/basis_diffuse.json";
 

@@ -113,6 +113,33 @@ enum Command {
         #[arg(long, default_value = "out/compare")]
         out: PathBuf,
     },
+    /// The open experiments over the canonical scenes (density-scaled vs
+    /// plain, vertex kernels vs point albedos, two passes, sampling, learned
+    /// vs manual, and error vs meta-model complexity with --models): tables
+    /// in experiments.html (self-contained), experiments.md and .json.
+    Experiments {
+        /// Scene files (default: the six canonical scenes).
+        #[arg(
+            long,
+            value_delimiter = ',',
+            default_value = "scenes/stripes.toml,scenes/checker.toml,scenes/complex.toml,scenes/color.toml,scenes/density.toml,scenes/features.toml"
+        )]
+        scenes: Vec<PathBuf>,
+        /// Samples per pixel of every model render.
+        #[arg(long, default_value_t = 256)]
+        spp: u32,
+        /// Reference paths per scene and pass.
+        #[arg(long, default_value = "1e7", value_parser = parse_count)]
+        paths: u64,
+        /// Meta-model files rendered with `learned` on stripes and checker
+        /// (error vs K and polynomial degrees; tools/kernel_complexity.sh).
+        #[arg(long, value_delimiter = ',')]
+        models: Vec<PathBuf>,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        #[arg(long, default_value = "out/experiments")]
+        out: PathBuf,
+    },
     /// End-to-end demo on shipped data.
     Demo {
         #[arg(long, default_value = "out/demo")]
@@ -147,6 +174,13 @@ struct RenderArgs {
     /// pyramid, a homogeneous material through every method's machinery).
     #[arg(long)]
     no_analysis: bool,
+    /// Clamp `learned` outside the meta-model's trained albedo range
+    /// instead of simulating and fitting the missing range.
+    #[arg(long)]
+    no_extend: bool,
+    /// Cache of meta-model extensions (content-hashed, reused).
+    #[arg(long, default_value = "out/cache")]
+    cache: PathBuf,
     /// Kernel-method variant: not density-scaled aggregation.
     #[arg(long)]
     plain: bool,
@@ -190,7 +224,7 @@ struct RenderArgs {
 const DEFAULT_BASIS: &str = svkernel::demo::SHIPPED_BASIS;
 /// The shipped diffuse-incidence basis model.
 const DEFAULT_BASIS_DIFFUSE: &str = svkernel::demo::SHIPPED_BASIS_DIFFUSE;
-const DEFAULT_KERNELS: &str = "data/kernels/eta1.5_g0.3_pencil.json";
+const DEFAULT_KERNELS: &str = svkernel::demo::SHIPPED_KERNELS;
 const DEFAULT_META: &str = svkernel::demo::SHIPPED_META;
 /// The shipped profiles of the default medium.
 const DEFAULT_PROFILES: &str = "data/profiles/eta1.5_g0.3_pencil";
@@ -967,6 +1001,63 @@ fn print_comparison(name: &str, doc: &serde_json::Value) {
     }
 }
 
+/// `svkernel experiments`.
+fn experiments(
+    scenes: Vec<PathBuf>,
+    spp: u32,
+    paths: u64,
+    models: Vec<PathBuf>,
+    seed: u64,
+    out: PathBuf,
+) -> Result<()> {
+    use svkernel::render::experiments::{Settings, report, run};
+    use svkernel::render::job::RenderOptions;
+    if spp == 0 {
+        bail!("invalid --spp = 0: must be >= 1");
+    }
+    let opts = RenderOptions {
+        spp: Some(spp),
+        reference_paths: Some(paths),
+        seed,
+        run: RunOptions {
+            progress: std::io::stderr().is_terminal(),
+            ..Default::default()
+        },
+        ..RenderOptions::new(out.clone())
+    };
+    let rows = run(&Settings { scenes, models }, &opts)?;
+    let command = std::env::args().collect::<Vec<_>>().join(" ");
+    let blocks = report(&rows, &command, &out.join("complexity.png"))?;
+    let doc = serde_json::json!({
+        "format": "svkernel.experiments",
+        "version": 1,
+        "spp": spp,
+        "reference_paths": paths,
+        "rows": rows,
+        "provenance": Provenance::current(),
+    });
+    svkernel::io::write_json_atomic(&out.join("experiments.json"), &doc)?;
+    let html = svkernel::render::report::write_report(
+        &out,
+        "experiments",
+        "svkernel: the open experiments",
+        &blocks,
+    )?;
+    print!(
+        "{}",
+        std::fs::read_to_string(out.join("experiments.md"))?
+            .lines()
+            .filter(|l| l.starts_with('|') || l.starts_with('#'))
+            .map(|l| format!("{l}\n"))
+            .collect::<String>()
+    );
+    println!(
+        "wrote {} (self-contained), experiments.md, experiments.json",
+        html.display()
+    );
+    Ok(())
+}
+
 /// Header of the per-method table of `render` and `demo`.
 fn method_header() -> String {
     format!(
@@ -1044,6 +1135,8 @@ fn render(a: RenderArgs) -> Result<()> {
         },
         reference_tallies: a.reference_tallies,
         analysis: !a.no_analysis,
+        cache: (!a.no_extend).then_some(a.cache),
+        kernels: DEFAULT_KERNELS.into(),
         out: a.out.clone(),
     };
     let passes = render_scene(&scene, &opts)?;
@@ -1095,6 +1188,14 @@ fn main() -> std::process::ExitCode {
             out,
         }),
         Command::Demo { out, paths } => demo(out, paths),
+        Command::Experiments {
+            scenes,
+            spp,
+            paths,
+            models,
+            seed,
+            out,
+        } => experiments(scenes, spp, paths, models, seed, out),
         Command::Fit(f) => fit(f),
         Command::Profile {
             albedo,

@@ -585,3 +585,63 @@ fn render_resume_after_kill_is_bitwise_identical() {
     assert!(!ckpt.exists());
     std::fs::remove_dir_all(&d).unwrap();
 }
+
+/// Albedos below the meta-model's trained range: the first render
+/// simulates and fits only the missing range into the cache, the second
+/// reuses it without simulating, `--no-extend` clamps instead (a different
+/// image), and a damaged cache entry is an error naming the file.
+#[test]
+fn missing_albedo_range_is_simulated_once_and_cached() {
+    let d = tmpdir("extend");
+    let scene = d.join("dark.toml");
+    std::fs::write(
+        &scene,
+        "texel = 0.25\nalbedo = { pattern = \"stripes\", values = [0.1, 0.6], width = 0.5 }\n\
+         [light]\nradius = 1.0\n[image]\nresolution = 8\nhalf_width = 2.0\n",
+    )
+    .unwrap();
+    let cache = d.join("cache");
+    let render = |out: &str, extra: &[&str]| {
+        let o = bin()
+            .arg("render")
+            .arg(&scene)
+            .args(["--method", "learned", "--spp", "16", "--cache"])
+            .arg(&cache)
+            .args(extra)
+            .arg("--out")
+            .arg(d.join(out))
+            .output()
+            .unwrap();
+        (
+            o.status.success(),
+            String::from_utf8_lossy(&o.stderr).into_owned(),
+        )
+    };
+    let ext = |out: &str| {
+        json(&d.join(out).join("render.json"))["passes"][0]["metamodel_extension"].clone()
+    };
+    assert!(render("a", &[]).0);
+    let first = ext("a");
+    assert_eq!(first["cached"], false, "{first}");
+    assert_eq!(first["missing"][0], 0.1);
+    assert!(first["albedos"][3].as_f64().unwrap() > 0.2);
+    let model = PathBuf::from(first["model"].as_str().unwrap());
+    assert!(model.starts_with(&cache) && model.exists());
+    assert!(render("b", &[]).0);
+    assert_eq!(ext("b")["cached"], true);
+    assert_eq!(ext("b")["model"], first["model"]);
+    assert!(render("c", &["--no-extend"]).0);
+    assert!(ext("c").is_null());
+    let img = |out: &str| std::fs::read(d.join(out).join("main/learned_mean.npy")).unwrap();
+    assert_eq!(img("a"), img("b"), "cached extension, same image");
+    assert_ne!(
+        img("a"),
+        img("c"),
+        "the extension changes the kernel below α = 0.2"
+    );
+    std::fs::write(&model, "{ not json").unwrap();
+    let (ok, err) = render("d", &[]);
+    assert!(!ok && err.contains("metamodel_ext_"), "{err}");
+    assert!(!d.join("d/render.json").exists());
+    std::fs::remove_dir_all(&d).unwrap();
+}

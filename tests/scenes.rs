@@ -28,6 +28,23 @@ fn every_shipped_scene_loads() {
     );
 }
 
+/// The extra (non-canonical) example scenes load and exercise what they
+/// are for: the scene analysis's skips, and albedos below the meta-model's
+/// trained range.
+#[test]
+fn extra_scenes_load_and_exercise_skips_and_the_range() {
+    use svkernel::render::analysis::analyse;
+    let grey = Scene::load(Path::new("scenes/extra/grey_rgb.toml")).unwrap();
+    let plan = analyse(&grey, true);
+    assert!(plan.grey && plan.constant_density == Some(2.0) && plan.skips_work());
+    let dark = Scene::load(Path::new("scenes/extra/dark.toml")).unwrap();
+    let [lo, _] = analyse(&dark, true).albedo_range;
+    let meta =
+        svkernel::metamodel::meta::MetaModelFile::load(Path::new("data/profiles/metamodel.json"))
+            .unwrap();
+    assert!(lo < meta.all.alpha_range[0]);
+}
+
 #[test]
 fn canonical_scenes_have_their_structure() {
     let s = Scene::load(Path::new("scenes/stripes.toml")).unwrap();

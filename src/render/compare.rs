@@ -12,7 +12,7 @@
 //! the reference's keeps falling, and where it crosses a model's curve is
 //! how long brute force needs to match that model.
 
-use super::analysis::analyse;
+use super::analysis::{Effect, analyse};
 use super::estimator::Image;
 use super::job::{RenderOptions, Target, render_scene, write_outputs};
 use super::report::{Block, write_report};
@@ -278,13 +278,28 @@ pub fn compare_scene(
     } else {
         None
     };
+    let mut analysis = serde_json::to_value(&plan).expect("plain data");
+    let extension = passes.first().and_then(|p| p.extension.as_ref());
+    if let (Some(effect), Some(list)) = (
+        range_effect(scene, opts, extension)?,
+        analysis["effects"].as_array_mut(),
+    ) {
+        list.push(serde_json::to_value(effect).expect("plain data"));
+    }
+    let skipped: Vec<serde_json::Value> = analysis["effects"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter(|e| e["needed"] == false)
+        .map(|e| e["name"].clone())
+        .collect();
     let doc = serde_json::json!({
         "format": "svkernel.compare",
         "version": 1,
         "scene": scene.path,
         "scene_name": scene.name,
-        "analysis": plan,
-        "skipped": plan.skipped().map(|e| e.name).collect::<Vec<_>>(),
+        "analysis": analysis,
+        "skipped": skipped,
         "savings": savings,
         "render": render,
         "curves": {
@@ -305,6 +320,73 @@ pub fn compare_scene(
         &blocks,
     )?;
     Ok(Comparison { doc, blocks })
+}
+
+/// The kernel meta-model's albedo range against the scene's, for
+/// `learned`: nothing to simulate, or what the extension did.
+fn range_effect(
+    scene: &Scene,
+    opts: &RenderOptions,
+    extension: Option<&super::extend::Extension>,
+) -> Result<Option<Effect>> {
+    if !scene.methods.iter().any(|m| m == "learned") {
+        return Ok(None);
+    }
+    let plan = analyse(scene, opts.analysis);
+    let [lo, hi] = plan.albedo_range;
+    let trained = crate::metamodel::meta::MetaModelFile::load(&opts.meta)?
+        .all
+        .alpha_range;
+    Ok(Some(match extension {
+        None if opts.cache.is_none() && super::extend::missing([lo, hi], trained).is_some() => {
+            Effect {
+                name: "kernel simulation (missing albedo range)",
+                needed: false,
+                detail: format!(
+                    "the scene's α ∈ [{lo}, {hi}] leaves the trained [{}, {}], but extension is \
+                     off: learned clamps there",
+                    trained[0], trained[1]
+                ),
+            }
+        }
+        None => Effect {
+            name: "kernel simulation (missing albedo range)",
+            needed: false,
+            detail: format!(
+                "the scene's α ∈ [{lo}, {hi}] lies inside the meta-model's trained [{}, {}]: \
+                 nothing to simulate or fit",
+                trained[0], trained[1]
+            ),
+        },
+        Some(e) => Effect {
+            name: "kernel simulation (missing albedo range)",
+            needed: true,
+            detail: if e.cached {
+                format!(
+                    "α ∈ [{}, {}] lies outside the trained [{}, {}]: extension reused from the \
+                     cache ({}), no simulation",
+                    e.missing[0],
+                    e.missing[1],
+                    trained[0],
+                    trained[1],
+                    e.model.display()
+                )
+            } else {
+                format!(
+                    "α ∈ [{}, {}] lies outside the trained [{}, {}]: simulated {} paths at α = \
+                     {:?} and fitted in {:.1} s, only that range (cached as {})",
+                    e.missing[0],
+                    e.missing[1],
+                    trained[0],
+                    trained[1],
+                    e.paths,
+                    e.albedos,
+                    e.wall_s,
+                    e.model.display()
+                )
+            },
+        },
+    }))
 }
 
 /// Renders the scene twice at the same settings, with the analysis on and

@@ -20,6 +20,7 @@
 
 use super::analysis::analyse;
 use super::estimator::{self, Image, Sampling, Settings, View};
+use super::extend::{self, Extension};
 use super::output;
 use super::reference::{REFERENCE_FORMAT, REFERENCE_VERSION, Reference, ReferenceTally};
 use super::scene::{LightKind, Scene};
@@ -82,6 +83,12 @@ pub struct RenderOptions {
     pub reference_tallies: Vec<PathBuf>,
     /// Skip the effects the scene does not call for ([`super::analysis`]).
     pub analysis: bool,
+    /// Where meta-model extensions for albedos outside the trained range
+    /// are cached ([`super::extend`]); `None`: clamp there instead.
+    pub cache: Option<PathBuf>,
+    /// The kernel tallies the meta-model was trained on (their
+    /// configuration is reused by extensions).
+    pub kernels: PathBuf,
 }
 
 impl RenderOptions {
@@ -104,6 +111,8 @@ impl RenderOptions {
             run: RunOptions::default(),
             reference_tallies: Vec::new(),
             analysis: true,
+            cache: Some("out/cache".into()),
+            kernels: crate::demo::SHIPPED_KERNELS.into(),
         }
     }
 }
@@ -141,6 +150,9 @@ pub struct Pass {
     pub rendered: Vec<Rendered>,
     /// Reference events per second (scatterings), if simulated here.
     pub reference_events_per_s: Option<f64>,
+    /// The meta-model extension `learned` used, if the scene's albedos
+    /// left the trained range ([`super::extend`]).
+    pub extension: Option<Extension>,
 }
 
 /// Errors of a method image against the reference, over all channels and
@@ -306,6 +318,20 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
     } else {
         None
     };
+    let plan = analyse(scene, opts.analysis);
+    // Albedos outside the trained range: simulate and fit only those.
+    let extension = match (&meta, &opts.cache) {
+        (Some(m), Some(cache)) => extend::missing(plan.albedo_range, m.all.alpha_range)
+            .map(|missing| {
+                extend::ensure(&opts.meta, &opts.kernels, missing, cache, opts.run.progress)
+            })
+            .transpose()?,
+        _ => None,
+    };
+    let extension_model = match &extension {
+        Some(e) => Some(Arc::new(MetaModelFile::load(&e.model)?)),
+        None => None,
+    };
     let view = View {
         light_radius: scene.light_radius,
         irradiance: scene.irradiance,
@@ -319,7 +345,6 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
         observable: scene.observable,
     };
     let hash = scene_hash(scene)?;
-    let plan = analyse(scene, opts.analysis);
     let albedo = plan.albedo(scene);
     let mut out = Vec::new();
     for (pass_index, (tag, rho)) in passes(scene).into_iter().enumerate() {
@@ -426,6 +451,10 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                         albedo.clone(),
                         density,
                     )?;
+                    let sv = match (&extension_model, method) {
+                        (Some(ext), Method::Learned) => sv.with_extension(ext.clone()),
+                        _ => sv,
+                    };
                     let setup_s = t0.elapsed().as_secs_f64();
                     let image = estimator::render(&sv, &view, &settings);
                     rendered.push(Rendered {
@@ -446,6 +475,7 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
             density: rho,
             rendered,
             reference_events_per_s: events_per_s,
+            extension: extension.clone(),
         });
     }
     Ok(out)
@@ -535,6 +565,7 @@ pub fn write_outputs(
             "density": pass.density,
             "white_point": white,
             "reference_events_per_s": pass.reference_events_per_s,
+            "metamodel_extension": pass.extension,
             "methods": methods,
         }));
     }

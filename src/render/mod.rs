@@ -3,11 +3,14 @@
 //! for all of them ([`estimator`]), the brute-force reference
 //! ([`reference`]), image output ([`output`]), the `render` job ([`job`])
 //! error against time ([`compare`]), the scene analysis ([`analysis`]) and
-//! the comparison report ([`report`]).
+//! the comparison report ([`report`]) and the open experiments
+//! ([`experiments`]).
 
 pub mod analysis;
 pub mod compare;
 pub mod estimator;
+pub mod experiments;
+pub mod extend;
 pub mod job;
 pub mod output;
 pub mod pyramid;

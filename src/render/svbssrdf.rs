@@ -330,6 +330,8 @@ pub struct SvBssrdf {
     pub variant: Variant,
     basis: Arc<BasisTable>,
     meta: Option<Arc<MetaModelFile>>,
+    /// A meta-model for albedos outside `meta`'s range ([`super::extend`]).
+    extension: Option<Arc<MetaModelFile>>,
     albedo: Vec<TexelMap>,
     density: Density,
     pyramids: Option<Pyramids>,
@@ -411,11 +413,32 @@ impl SvBssrdf {
             variant,
             basis,
             meta,
+            extension: None,
             albedo,
             density,
             pyramids,
             rows,
         })
+    }
+
+    /// Uses `ext` for kernel queries whose albedo α₀ lies outside the main
+    /// meta-model's trained range (simulated and fitted for the scene's
+    /// missing range by [`super::extend::ensure`]).
+    pub fn with_extension(mut self, ext: Arc<MetaModelFile>) -> Self {
+        self.extension = Some(ext);
+        self
+    }
+
+    /// The meta-model for kernel queries at albedo `alpha0`: the extension
+    /// outside the main model's albedo range, if there is one.
+    #[inline]
+    fn meta_for(&self, alpha0: f64) -> Option<&MetaModelFile> {
+        let main = self.meta.as_deref()?;
+        let [lo, hi] = main.all.alpha_range;
+        match &self.extension {
+            Some(ext) if !(lo..=hi).contains(&alpha0) => Some(ext),
+            _ => Some(main),
+        }
     }
 
     /// Number of channels.
@@ -496,10 +519,10 @@ impl SvBssrdf {
         let (mut li, mut le) = (ai, ae);
         // A point vertex kernel (manual's both; learned's first under normal
         // incidence, `first: None`) aggregates to the point albedo in hand.
+        let a0 = 0.5 * (ai + ae);
         if let (true, Method::Learned, Some(meta)) =
-            (self.variant.vertex_kernels, self.method, &self.meta)
+            (self.variant.vertex_kernels, self.method, self.meta_for(a0))
         {
-            let a0 = 0.5 * (ai + ae);
             if let Some(first) = &meta.first {
                 first.eval_into(d, a0, rho0, &mut scratch.kernel);
                 li = self.aggregate(c, &frame, &scratch.kernel).0;
@@ -517,7 +540,7 @@ impl SvBssrdf {
     /// the optical distance ρ₀d with lengths divided by ρ₀ (the density law).
     #[inline]
     fn all_kernel(&self, d: f64, alpha0: f64, rho0: f64, out: &mut Gmm) {
-        match (self.method, &self.meta) {
+        match (self.method, self.meta_for(alpha0)) {
             (Method::Learned, Some(meta)) => {
                 meta.all.eval_into(d, alpha0, rho0, out);
             }

@@ -1,0 +1,212 @@
+//! Simulate and fit only the missing range (issue 7 §4): when a scene's
+//! albedos reach outside the albedo range the kernel meta-model was trained
+//! on, `learned` would clamp there. Instead, [`ensure`] simulates path
+//! densities at a few albedos spanning just the missing interval (plus an
+//! overlap into the trained range), fits a meta-model to them, and caches
+//! both under a content hash, so the next render with the same model and
+//! the same missing interval reuses them.
+//!
+//! The extension model is used for kernel queries whose albedo α₀ lies
+//! outside the main model's range ([`crate::render::svbssrdf::SvBssrdf::with_extension`]);
+//! inside it nothing changes. Distances are not extended: the shipped
+//! tallies cover d ∈ [0.1, 10] MFP (optical), and beyond 10 MFP the kernel
+//! clamps to its d = 10 shape scaled with d (the profile has fallen by
+//! e^{−σ_tr·10} there).
+//!
+//! The basis profiles cover α ∈ [0.01, 0.999] (32 simulated albedos); a
+//! scene outside that range gets a clear clamp rather than an extension.
+
+use crate::error::{Error, Result};
+use crate::forward::kernel::{KernelConfig, KernelDoc};
+use crate::forward::runner::{RunOptions, chunk_range};
+use crate::metamodel::meta::MetaModelFile;
+use crate::provenance::Provenance;
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Paths walked per extension simulation (all albedos share them): below
+/// the trained range few paths scatter twice and exit at a given distance
+/// (at α = 0.15, 5e7 paths give ≈ 1000 contributing paths per distance up
+/// to 2.5 MFP, ≈ 6 s); above it paths are long but nearly all contribute.
+pub fn extension_paths(missing: [f64; 2], trained: [f64; 2]) -> u64 {
+    if missing[0] < trained[0] {
+        50_000_000
+    } else {
+        10_000_000
+    }
+}
+/// Albedos simulated across the missing interval.
+const EXTENSION_ALBEDOS: usize = 4;
+/// How far into the trained range the extension reaches (in √(1 − α)),
+/// so the two models meet on common ground.
+const OVERLAP: f64 = 0.05;
+/// The largest albedo an extension simulates (paths grow like 1/(1 − α)).
+const MAX_ALBEDO: f64 = 0.995;
+
+/// What [`ensure`] did.
+#[derive(Clone, Debug, Serialize)]
+pub struct Extension {
+    /// The scene's albedo interval outside the main model's range.
+    pub missing: [f64; 2],
+    /// The albedos simulated and the paths walked.
+    pub albedos: Vec<f64>,
+    pub paths: u64,
+    /// The extension meta-model and its kernel tallies.
+    pub model: PathBuf,
+    pub kernels: PathBuf,
+    /// True if both came from the cache (no simulation, no fit).
+    pub cached: bool,
+    /// Simulation and fit time of this call (0 when cached).
+    pub wall_s: f64,
+}
+
+/// The part of `scene_range` outside `trained` (the larger side if both;
+/// `None` if it lies inside).
+pub fn missing(scene_range: [f64; 2], trained: [f64; 2]) -> Option<[f64; 2]> {
+    let below = scene_range[0] < trained[0];
+    let above = scene_range[1] > trained[1];
+    match (below, above) {
+        (false, false) => None,
+        (true, false) => Some([scene_range[0], trained[0]]),
+        (false, true) => Some([trained[1], scene_range[1]]),
+        (true, true) => {
+            // One extension per render: the wider side (the other clamps).
+            let lo = trained[0] - scene_range[0];
+            let hi = scene_range[1] - trained[1];
+            Some(if lo >= hi {
+                [scene_range[0], trained[0]]
+            } else {
+                [trained[1], scene_range[1]]
+            })
+        }
+    }
+}
+
+/// The albedos that cover `missing` and reach [`OVERLAP`] into `trained`,
+/// evenly spaced in √(1 − α).
+fn albedos(missing: [f64; 2], trained: [f64; 2]) -> Vec<f64> {
+    let x = |a: f64| (1.0 - a).max(0.0).sqrt();
+    let (x0, x1) = if missing[0] < trained[0] {
+        // Below: from the scene's lowest albedo to inside the range.
+        (x(missing[0].max(0.0)), x(trained[0]) - OVERLAP)
+    } else {
+        (x(trained[1]) + OVERLAP, x(missing[1].min(MAX_ALBEDO)))
+    };
+    (0..EXTENSION_ALBEDOS)
+        .map(|k| {
+            let t = k as f64 / (EXTENSION_ALBEDOS - 1) as f64;
+            let xv = x0 + t * (x1 - x0);
+            // Round to 4 decimals: stable names and hashes.
+            ((1.0 - xv * xv) * 1e4).round() / 1e4
+        })
+        .collect()
+}
+
+/// FNV-1a over byte strings, hex.
+fn hash(parts: &[&[u8]]) -> String {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for p in parts {
+        for b in p.iter().chain(&[0xff]) {
+            h = (h ^ *b as u64).wrapping_mul(0x0100_0000_01b3);
+        }
+    }
+    format!("{h:016x}")
+}
+
+/// Makes sure an extension of `meta_path` over `missing` exists in `cache`
+/// (module docs), simulating with the configuration of the training
+/// tallies `kernels_path` at new albedos; returns it and whether it was
+/// cached.
+pub fn ensure(
+    meta_path: &Path,
+    kernels_path: &Path,
+    missing: [f64; 2],
+    cache: &Path,
+    progress: bool,
+) -> Result<Extension> {
+    let meta = MetaModelFile::load(meta_path)?;
+    let trained = meta.all.alpha_range;
+    let training = KernelDoc::load(kernels_path)?;
+    let albedos = albedos(missing, trained);
+    let config = KernelConfig {
+        albedos: albedos.clone(),
+        paths: extension_paths(missing, trained),
+        ..training.config.clone()
+    };
+    config.validate()?;
+    let meta_bytes = std::fs::read(meta_path).map_err(|e| Error::io(meta_path, e))?;
+    let config_json =
+        serde_json::to_vec(&config).map_err(|e| Error::format(kernels_path, "config", e))?;
+    let key = hash(&[
+        b"svkernel extension v1",
+        &meta_bytes,
+        &config_json,
+        format!("{:?}", (meta.all.k, meta.all.deg_x)).as_bytes(),
+    ]);
+    let model = cache.join(format!("metamodel_ext_{key}.json"));
+    let kernels = cache.join(format!("kernels_ext_{key}.json"));
+    if model.exists() && kernels.exists() {
+        // A damaged cache entry is an error naming the file, not a silent refit.
+        MetaModelFile::load(&model)?;
+        return Ok(Extension {
+            missing,
+            albedos,
+            paths: config.paths,
+            model,
+            kernels,
+            cached: true,
+            wall_s: 0.0,
+        });
+    }
+    let t0 = Instant::now();
+    let opts = RunOptions {
+        progress,
+        ..Default::default()
+    };
+    let (tally, wall_s) = config.run(None, &opts)?;
+    let chunks = vec![chunk_range(config.paths, None)];
+    let doc = KernelDoc::new(config, None, chunks, tally, wall_s, Provenance::current());
+    crate::io::write_json_compact_atomic(&kernels, &doc)?;
+    let degree = (meta.all.deg_x, meta.all.deg_y.min(EXTENSION_ALBEDOS - 2));
+    crate::fit::kernel_report::fit_kernels(
+        &kernels,
+        &model,
+        &cache.join(format!("metamodel_ext_{key}_report")),
+        meta.all.k,
+        degree,
+    )?;
+    Ok(Extension {
+        missing,
+        albedos,
+        paths: doc.paths,
+        model,
+        kernels,
+        cached: false,
+        wall_s: t0.elapsed().as_secs_f64(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn missing_interval_and_its_albedos() {
+        let trained = [0.2, 0.99];
+        assert_eq!(missing([0.3, 0.95], trained), None);
+        assert_eq!(missing([0.15, 0.9], trained), Some([0.15, 0.2]));
+        assert_eq!(missing([0.3, 0.999], trained), Some([0.99, 0.999]));
+        assert_eq!(missing([0.1, 0.995], trained), Some([0.1, 0.2]));
+        let a = albedos([0.15, 0.2], trained);
+        assert_eq!(a.len(), EXTENSION_ALBEDOS);
+        assert_eq!(a[0], 0.15);
+        // Increasing, ending inside the trained range.
+        assert!(
+            a.windows(2).all(|w| w[0] < w[1]) && a[3] > 0.2 && a[3] < 0.3,
+            "{a:?}"
+        );
+        let b = albedos([0.99, 0.999], trained);
+        assert!(b[0] < 0.99 && b[3] == 0.995, "{b:?}");
+    }
+}
