@@ -43,6 +43,18 @@ pub fn rel_error(m: &Image, t: &Image) -> f64 {
     super::job::rel_rmse(m, t, false)
 }
 
+/// Every budget of the curves must be ≥ 1 (checked before any work).
+fn check_budgets(truth_paths: u64, spps: &[u32], paths: &[u64]) -> Result<()> {
+    if spps.contains(&0) || paths.contains(&0) || truth_paths == 0 {
+        return Err(Error::param(
+            "--spp-list/--paths-list/--truth-paths",
+            "0",
+            "budgets >= 1",
+        ));
+    }
+    Ok(())
+}
+
 /// Renders the truth (`truth_paths`, seed `opts.seed + 1_000_003`), the
 /// reference at each of `paths` and every model method of the scene at each
 /// of `spps` (seed `opts.seed`), and returns the curves (first pass only)
@@ -54,13 +66,7 @@ pub fn error_vs_time(
     spps: &[u32],
     paths: &[u64],
 ) -> Result<(Vec<Curve>, f64)> {
-    if spps.contains(&0) || paths.contains(&0) || truth_paths == 0 {
-        return Err(Error::param(
-            "--spp-list/--paths-list/--truth-paths",
-            "0",
-            "budgets >= 1",
-        ));
-    }
+    check_budgets(truth_paths, spps, paths)?;
     let first = |o: &RenderOptions| -> Result<Vec<(Target, Image, f64)>> {
         let first_pass = render_scene(scene, o)?.swap_remove(0);
         Ok(first_pass
@@ -259,6 +265,9 @@ pub fn compare_scene(
     opts: &RenderOptions,
     settings: &CompareSettings,
 ) -> Result<Comparison> {
+    if let Some((truth, spps, paths)) = &settings.curves {
+        check_budgets(*truth, spps, paths)?;
+    }
     let plan = analyse(scene, opts.analysis);
     let passes = render_scene(scene, opts)?;
     let render = write_outputs(scene, opts, &passes)?;
