@@ -20,6 +20,28 @@ fn json(p: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
 }
 
+/// Writes an 8 × 8-pixel scene (τ = 0.25, light radius 1, half-width 2)
+/// with a two-valued albedo `pattern` of size 0.5 under `size_key` plus
+/// `extra` TOML lines; returns its path.
+fn small_scene(
+    path: &Path,
+    pattern: &str,
+    values: [f64; 2],
+    size_key: &str,
+    extra: &str,
+) -> PathBuf {
+    std::fs::write(
+        path,
+        format!(
+            "texel = 0.25\nalbedo = {{ pattern = \"{pattern}\", values = [{}, {}], {size_key} = 0.5 }}\n\
+             {extra}\n[light]\nradius = 1.0\n[image]\nresolution = 8\nhalf_width = 2.0\n",
+            values[0], values[1]
+        ),
+    )
+    .unwrap();
+    path.to_path_buf()
+}
+
 /// `svkernel merge PARTS --out OUT`, which must succeed.
 fn merge_ok(parts: &[PathBuf], out: &Path) {
     let o = bin()
@@ -254,13 +276,7 @@ fn kernel_shards_merge_to_the_unsharded_result() {
 #[test]
 fn render_reference_shards_merge_and_bad_input() {
     let d = tmpdir("render");
-    let scene = d.join("s.toml");
-    std::fs::write(
-        &scene,
-        "texel = 0.25\nalbedo = { pattern = \"checker\", values = [0.3, 0.9], cell = 0.5 }\n\
-         [light]\nradius = 1.0\n[image]\nresolution = 8\nhalf_width = 2.0\n",
-    )
-    .unwrap();
+    let scene = small_scene(&d.join("s.toml"), "checker", [0.3, 0.9], "cell", "");
     let render = |args: &[&str], out: &Path| {
         let o = bin()
             .arg("render")
@@ -393,13 +409,13 @@ fn demo_runs_end_to_end() {
 #[test]
 fn compare_writes_metrics_curves_and_report() {
     let d = tmpdir("compare");
-    let scene = d.join("s.toml");
-    std::fs::write(
-        &scene,
-        "texel = 0.25\nalbedo = { pattern = \"stripes\", values = [0.3, 0.95], width = 0.5 }\n\
-         methods = [\"point\", \"learned\"]\n[light]\nradius = 1.0\n[image]\nresolution = 8\nhalf_width = 2.0\n",
-    )
-    .unwrap();
+    let scene = small_scene(
+        &d.join("s.toml"),
+        "stripes",
+        [0.3, 0.95],
+        "width",
+        "methods = [\"point\", \"learned\"]",
+    );
     let o = bin()
         .arg("compare")
         .arg(&scene)
@@ -490,13 +506,7 @@ fn cluster_scripts_shard_and_merge_like_one_run() {
     assert_eq!(a["tally"], b["tally"]);
     assert_eq!(a["R_d"], b["R_d"]);
     // A reference render.
-    let scene = d.join("s.toml");
-    std::fs::write(
-        &scene,
-        "texel = 0.25\nalbedo = { pattern = \"stripes\", values = [0.3, 0.9], width = 0.5 }\n\
-         [light]\nradius = 1.0\n[image]\nresolution = 8\nhalf_width = 2.0\n",
-    )
-    .unwrap();
+    let scene = small_scene(&d.join("s.toml"), "stripes", [0.3, 0.9], "width", "");
     let s = scene.to_str().unwrap();
     let out = d.join("reference");
     for k in 0..3 {
@@ -536,13 +546,7 @@ fn cluster_scripts_shard_and_merge_like_one_run() {
 #[test]
 fn render_resume_after_kill_is_bitwise_identical() {
     let d = tmpdir("render-resume");
-    let scene = d.join("s.toml");
-    std::fs::write(
-        &scene,
-        "texel = 0.25\nalbedo = { pattern = \"stripes\", values = [0.9, 0.99], width = 0.5 }\n\
-         [light]\nradius = 1.0\n[image]\nresolution = 8\nhalf_width = 2.0\n",
-    )
-    .unwrap();
+    let scene = small_scene(&d.join("s.toml"), "stripes", [0.9, 0.99], "width", "");
     let s = scene.to_str().unwrap();
     let common = ["render", s, "--method", "reference", "--paths", "3e6"];
     let o = bin()
@@ -593,13 +597,7 @@ fn render_resume_after_kill_is_bitwise_identical() {
 #[test]
 fn missing_albedo_range_is_simulated_once_and_cached() {
     let d = tmpdir("extend");
-    let scene = d.join("dark.toml");
-    std::fs::write(
-        &scene,
-        "texel = 0.25\nalbedo = { pattern = \"stripes\", values = [0.1, 0.6], width = 0.5 }\n\
-         [light]\nradius = 1.0\n[image]\nresolution = 8\nhalf_width = 2.0\n",
-    )
-    .unwrap();
+    let scene = small_scene(&d.join("dark.toml"), "stripes", [0.1, 0.6], "width", "");
     let cache = d.join("cache");
     let render = |out: &str, extra: &[&str]| {
         let o = bin()

@@ -30,6 +30,9 @@ use crate::metamodel::meta::MetaModelFile;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
+/// (x, y) points of a plotted series.
+type Points = Vec<(f64, f64)>;
+
 /// One model configuration.
 #[derive(Clone, Debug, PartialEq)]
 struct Config {
@@ -56,6 +59,8 @@ pub struct Row {
     pub rel_bias: f64,
     /// √(Σσ²/Σr²): the image's relative noise.
     pub rel_noise: f64,
+    /// The smallest rel RMSE this comparison resolves ([`resolution`]).
+    pub resolution: f64,
 }
 
 /// What to run.
@@ -102,6 +107,16 @@ fn configs(name: &str, models: &[PathBuf]) -> Vec<Config> {
         }
     }
     c
+}
+
+/// The smallest relative RMSE a comparison of `img` with `r` resolves:
+/// the noise-subtracted squared error Σ(m − r)² − Σ(σ_m² + σ_r²) has a
+/// standard deviation of about √(2/N)·Σ(σ_m² + σ_r²) over N independent
+/// pixels, so a bias pattern below ν·(2/N)^{1/4} (ν the two images'
+/// combined relative noise) is indistinguishable from noise.
+fn resolution(img: &Image, r: &Image) -> f64 {
+    let n = img.mean.len() as f64;
+    (rel_noise(img, r).powi(2) + rel_noise(r, r).powi(2)).sqrt() * (2.0 / n).powf(0.25)
 }
 
 /// √(Σσ²/Σr²) of `img` against the reference means `r`.
@@ -151,6 +166,7 @@ pub fn run(settings: &Settings, opts: &RenderOptions) -> Result<Vec<Row>> {
                     rel_rmse: m.rel_rmse,
                     rel_bias: m.rel_bias,
                     rel_noise: rel_noise(&img.image, reference),
+                    resolution: resolution(&img.image, reference),
                 });
             }
         }
@@ -273,6 +289,7 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
     let methods: Vec<&str> = Method::ALL.iter().map(|m| m.name()).collect();
     let mut header = vec!["scene".to_string()];
     header.extend(methods.iter().map(|m| m.to_string()));
+    header.push("resolvable (learned)".into());
     let mut table = Vec::new();
     let (mut learned_wins, mut manual_wins, mut n) = (0, 0, 0);
     for key in passes(rows) {
@@ -283,6 +300,9 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
             .collect();
         let mut row = vec![label(&key)];
         row.extend(e.iter().map(|v| err(*v)));
+        row.push(pct(
+            find(rows, k, "learned", "", "importance", None).map(|r| r.resolution)
+        ));
         table.push(row);
         if let [Some(p), Some(f), Some(l), Some(el), Some(ma), Some(le)] = e[..] {
             n += 1;
@@ -347,8 +367,8 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
         }
         table.push(row);
     }
-    b.push(Block::Table {
-        header: [
+    b.push(Block::table(
+        &[
             "scene",
             "noise at 1 s, uniform",
             "importance",
@@ -356,11 +376,9 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
             "rel RMSE, uniform",
             "importance",
             "MIS",
-        ]
-        .map(String::from)
-        .into(),
-        rows: table,
-    });
+        ],
+        table,
+    ));
     b.push(Block::Para(
         "Noise at equal time: ν·√t, the relative noise an image would have after one second \
          (lower is better). Uniform disk sampling has unbounded variance here (R(r) ~ 1/r at \
@@ -374,7 +392,8 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
             "Error vs kernel complexity and meta-model size".into(),
         ));
         let mut table = Vec::new();
-        let mut series: Vec<(String, Vec<(f64, f64)>)> = Vec::new();
+        // Per scene: error vs K at degrees (3, 3), and the resolution floor.
+        let mut series: Vec<(String, Points, Points)> = Vec::new();
         for r in &model_rows {
             let path = r.model.as_deref().expect("filtered");
             let m = MetaModelFile::load(path)?;
@@ -391,17 +410,23 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
                 coeffs.to_string(),
                 num(Some(r.wall_s)),
                 err(Some(r.rel_rmse)),
+                pct(Some(r.resolution)),
                 pct(Some(r.rel_bias)),
             ]);
-            let name = format!("{} (degrees {}, {})", r.scene, m.all.deg_x, m.all.deg_y);
-            let p = (m.all.k as f64, r.rel_rmse.max(1e-4));
-            match series.iter_mut().find(|(s, _)| *s == name) {
-                Some((_, v)) => v.push(p),
-                None => series.push((name, vec![p])),
+            if (m.all.deg_x, m.all.deg_y) == (3, 3) {
+                let k = m.all.k as f64;
+                let (e, f) = (r.rel_rmse.max(r.resolution), r.resolution);
+                match series.iter_mut().find(|(s, _, _)| *s == r.scene) {
+                    Some((_, v, w)) => {
+                        v.push((k, e));
+                        w.push((k, f));
+                    }
+                    None => series.push((r.scene.clone(), vec![(k, e)], vec![(k, f)])),
+                }
             }
         }
-        b.push(Block::Table {
-            header: [
+        b.push(Block::table(
+            &[
                 "scene",
                 "meta-model",
                 "K",
@@ -409,32 +434,38 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
                 "coefficients",
                 "time [s]",
                 "rel RMSE",
+                "resolvable",
                 "rel bias",
-            ]
-            .map(String::from)
-            .into(),
-            rows: table,
-        });
+            ],
+            table,
+        ));
+        b.push(Block::Para(
+            "resolvable: the smallest rel RMSE the comparison can tell from the two images' \
+             noise, ν·(2/N)^{1/4} over N pixel values with ν their combined relative noise; \
+             \"< noise\" rows lie below it."
+                .into(),
+        ));
         use crate::plot::{Axes, Series, chart, chart_svg};
-        let series: Vec<Series> = series
-            .into_iter()
-            .enumerate()
-            .map(|(k, (name, mut pts))| {
-                pts.sort_by(|a, b| a.0.total_cmp(&b.0));
-                Series::line(name, pts, k)
-            })
-            .collect();
+        let mut plotted: Vec<Series> = Vec::new();
+        for (k, (name, mut e, mut f)) in series.into_iter().enumerate() {
+            e.sort_by(|a, b| a.0.total_cmp(&b.0));
+            f.sort_by(|a, b| a.0.total_cmp(&b.0));
+            plotted.push(Series::line(name.clone(), e, k));
+            plotted.push(Series::dashed(format!("{name}: resolvable"), f, k));
+        }
         let axes = Axes {
-            title: "learned: error vs Gaussian components K".into(),
+            title: "learned: error vs Gaussian components K (degrees 3, 3)".into(),
             x_label: "K".into(),
             y_label: "relative RMSE vs reference".into(),
             log_x: false,
             log_y: true,
         };
-        chart(plot, &axes, &series)?;
-        chart_svg(&plot.with_extension("svg"), &axes, &series)?;
+        chart(plot, &axes, &plotted)?;
+        chart_svg(&plot.with_extension("svg"), &axes, &plotted)?;
         b.push(Block::Figure {
-            caption: "learned's error against K, per scene and polynomial degrees".into(),
+            caption: "learned's error against K (solid; a point on the dashed line of its scene \
+                      is below what the comparison resolves)"
+                .into(),
             path: plot.to_path_buf(),
         });
     }

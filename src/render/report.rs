@@ -34,6 +34,16 @@ pub enum Block {
     Figure { caption: String, path: PathBuf },
 }
 
+impl Block {
+    /// A table with a header of string literals.
+    pub fn table(header: &[&str], rows: Vec<Vec<String>>) -> Block {
+        Block::Table {
+            header: header.iter().map(|h| h.to_string()).collect(),
+            rows,
+        }
+    }
+}
+
 fn escape(s: &str) -> String {
     s.replace('&', "&amp;")
         .replace('<', "&lt;")
