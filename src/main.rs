@@ -135,6 +135,10 @@ enum Command {
         /// (error vs K and polynomial degrees; tools/kernel_complexity.sh).
         #[arg(long, value_delimiter = ',')]
         models: Vec<PathBuf>,
+        /// Basis model files rendered with `learned` on stripes and checker
+        /// (error vs exponential terms; tools/kernel_complexity.sh).
+        #[arg(long, value_delimiter = ',')]
+        bases: Vec<PathBuf>,
         #[arg(long, default_value_t = 1)]
         seed: u64,
         #[arg(long, default_value = "out/experiments")]
@@ -1007,6 +1011,7 @@ fn experiments(
     spp: u32,
     paths: u64,
     models: Vec<PathBuf>,
+    bases: Vec<PathBuf>,
     seed: u64,
     out: PathBuf,
 ) -> Result<()> {
@@ -1025,7 +1030,14 @@ fn experiments(
         },
         ..RenderOptions::new(out.clone())
     };
-    let rows = run(&Settings { scenes, models }, &opts)?;
+    let rows = run(
+        &Settings {
+            scenes,
+            models,
+            bases,
+        },
+        &opts,
+    )?;
     let command = std::env::args().collect::<Vec<_>>().join(" ");
     let blocks = report(&rows, &command, &out.join("complexity.png"))?;
     let doc = serde_json::json!({
@@ -1193,9 +1205,10 @@ fn main() -> std::process::ExitCode {
             spp,
             paths,
             models,
+            bases,
             seed,
             out,
-        } => experiments(scenes, spp, paths, models, seed, out),
+        } => experiments(scenes, spp, paths, models, bases, seed, out),
         Command::Fit(f) => fit(f),
         Command::Profile {
             albedo,

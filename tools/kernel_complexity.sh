@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # Error vs kernel complexity and meta-model size (issue 7 §2): refits the
 # kernel meta-model from the shipped kernel tallies with K = 1…5 Gaussians
-# (polynomial degrees 3, 3) and with degrees 1…4 at K = 3, then renders
-# stripes and checker with `learned` under each, inside the open
-# experiments. About 4 min (fits) + 6 min (experiments) on 2 cores.
+# (polynomial degrees 3, 3) and with degrees 1…4 at K = 3, and the basis
+# BSSRDF from the shipped profiles with 3, 4, 6 and 8 exponential terms,
+# then renders stripes and checker with `learned` under each, inside the
+# open experiments. About 5 min (fits) + 4 min (experiments) on 2 cores.
 #
 #   bash tools/kernel_complexity.sh            # writes out/models/, out/experiments/
 #   SVKERNEL=path/to/svkernel OUT=dir bash tools/kernel_complexity.sh
@@ -24,5 +25,15 @@ fit() { # K DX DY
 }
 for k in 1 2 3 4 5; do fit "$k" 3 3; done
 for d in 1 2 4; do fit 3 "$d" "$d"; done
+bases=()
+for n in 3 4 6 8; do
+  b="$OUT/models/basis_$n.json"
+  if [ ! -f "$b" ]; then
+    "$SVKERNEL" fit profiles --components "$n" --out "$b" \
+      --report "$OUT/models/basis_${n}_report" > "$OUT/models/basis_$n.log"
+  fi
+  bases+=("$b")
+done
 list=$(IFS=,; echo "${models[*]}")
-"$SVKERNEL" experiments --models "$list" --out "$OUT/experiments" "$@"
+blist=$(IFS=,; echo "${bases[*]}")
+"$SVKERNEL" experiments --models "$list" --bases "$blist" --out "$OUT/experiments" "$@"

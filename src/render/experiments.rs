@@ -13,6 +13,7 @@
 //! | two-pass | `stripes`, `checker`, `density` | learned: one pass vs α₀ = α_t |
 //! | sampling | `stripes`, `checker`, `density` | learned: uniform, importance, MIS |
 //! | models | `stripes`, `checker` | learned with each `--models` file (K, degrees) |
+//! | bases | `stripes`, `checker` | learned with each `--bases` file (exponential terms) |
 //!
 //! Errors are [`super::job::metrics`] (both images' noise subtracted).
 //! Sampling is compared at equal time by the relative noise an image would
@@ -41,6 +42,8 @@ struct Config {
     sampling: Sampling,
     /// Meta-model file (`None`: the options' one).
     model: Option<PathBuf>,
+    /// Basis model file (`None`: the options' one).
+    basis: Option<PathBuf>,
 }
 
 /// One measured configuration on one pass of one scene.
@@ -53,6 +56,7 @@ pub struct Row {
     pub variant: String,
     pub sampling: &'static str,
     pub model: Option<PathBuf>,
+    pub basis: Option<PathBuf>,
     pub spp: u32,
     pub wall_s: f64,
     pub rel_rmse: f64,
@@ -70,15 +74,18 @@ pub struct Settings {
     pub scenes: Vec<PathBuf>,
     /// Meta-model files for the `models` experiment (may be empty).
     pub models: Vec<PathBuf>,
+    /// Basis model files for the `bases` experiment (may be empty).
+    pub bases: Vec<PathBuf>,
 }
 
 /// The configurations scene `name` takes part in (module docs).
-fn configs(name: &str, models: &[PathBuf]) -> Vec<Config> {
+fn configs(name: &str, settings: &Settings) -> Vec<Config> {
     let base = |method| Config {
         method,
         variant: Variant::default(),
         sampling: Sampling::Importance,
         model: None,
+        basis: None,
     };
     let mut c: Vec<Config> = Method::ALL.into_iter().map(base).collect();
     let with = |method, f: &dyn Fn(&mut Config)| {
@@ -102,8 +109,11 @@ fn configs(name: &str, models: &[PathBuf]) -> Vec<Config> {
         }
     }
     if matches!(name, "stripes" | "checker") {
-        for m in models {
+        for m in &settings.models {
             c.push(with(Method::Learned, &|k| k.model = Some(m.clone())));
+        }
+        for b in &settings.bases {
+            c.push(with(Method::Learned, &|k| k.basis = Some(b.clone())));
         }
     }
     c
@@ -141,12 +151,13 @@ pub fn run(settings: &Settings, opts: &RenderOptions) -> Result<Vec<Row>> {
                 ..opts.clone()
             },
         )?;
-        for config in configs(&scene.name, &settings.models) {
+        for config in configs(&scene.name, settings) {
             let o = RenderOptions {
                 targets: vec![Target::Model(config.method)],
                 variant: config.variant,
                 sampling: config.sampling,
                 meta: config.model.clone().unwrap_or_else(|| opts.meta.clone()),
+                basis: config.basis.clone().unwrap_or_else(|| opts.basis.clone()),
                 out: out.clone(),
                 ..opts.clone()
             };
@@ -161,6 +172,7 @@ pub fn run(settings: &Settings, opts: &RenderOptions) -> Result<Vec<Row>> {
                     variant: config.variant.tag(),
                     sampling: config.sampling.name(),
                     model: config.model.clone(),
+                    basis: config.basis.clone(),
                     spp: opts.spp.unwrap_or(scene.samples),
                     wall_s: img.wall_s,
                     rel_rmse: m.rel_rmse,
@@ -189,6 +201,7 @@ fn find<'a>(
             && r.variant == variant
             && r.sampling == sampling
             && r.model.as_deref() == model
+            && r.basis.is_none()
     })
 }
 
@@ -468,6 +481,38 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
                 .into(),
             path: plot.to_path_buf(),
         });
+    }
+    let basis_rows: Vec<&Row> = rows.iter().filter(|r| r.basis.is_some()).collect();
+    if !basis_rows.is_empty() {
+        b.push(Block::Heading(2, "Error vs basis terms".into()));
+        let mut table = Vec::new();
+        for r in basis_rows {
+            let path = r.basis.as_deref().expect("filtered");
+            let m = crate::metamodel::basis::BasisModel::load(path)?;
+            table.push(vec![
+                label(&(r.scene.clone(), r.pass.clone())),
+                path.display().to_string(),
+                m.ln_a.len().to_string(),
+                m.degree.to_string(),
+                num(Some(r.wall_s)),
+                err(Some(r.rel_rmse)),
+                pct(Some(r.resolution)),
+                pct(Some(r.rel_bias)),
+            ]);
+        }
+        b.push(Block::table(
+            &[
+                "scene",
+                "basis",
+                "exponential terms",
+                "degree in albedo",
+                "time [s]",
+                "rel RMSE",
+                "resolvable",
+                "rel bias",
+            ],
+            table,
+        ));
     }
     Ok(b)
 }
