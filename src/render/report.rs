@@ -89,7 +89,7 @@ code{background:#f3f3f3;padding:0 .2em}";
 pub fn to_html(title: &str, blocks: &[Block]) -> Result<String> {
     let mut h = format!(
         "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
-         <title>{}</title><style>{STYLE}</style></head><body>\n",
+         <title>{0}</title><style>{STYLE}</style></head><body>\n<h1>{0}</h1>\n",
         escape(title)
     );
     for b in blocks {
@@ -279,6 +279,7 @@ mod tests {
         let html = write_report(&dir, "r", "T", &blocks).unwrap();
         let h = std::fs::read_to_string(html).unwrap();
         assert!(h.contains("data:image/png;base64,iVBOR"), "PNG embedded");
+        assert!(h.contains("<title>T</title>") && h.contains("<h1>T</h1>"));
         assert!(!h.contains("sub/a.png"), "no file links in HTML");
         assert!(h.contains("Errors &lt;&amp;&gt;") && h.contains("<code>learned</code>"));
         assert!(h.contains("3.4 %"));
