@@ -343,11 +343,14 @@ fn range_effect(
     }
     let plan = analyse(scene, opts.analysis);
     let [lo, hi] = plan.albedo_range;
+    // Albedos to three decimals in the text.
+    let r = |v: f64| (v * 1e3).round() / 1e3;
+    let (lo, hi) = (r(lo), r(hi));
     let trained = crate::metamodel::meta::MetaModelFile::load(&opts.meta)?
         .all
         .alpha_range;
     Ok(Some(match extension {
-        None if opts.cache.is_none() && super::extend::missing([lo, hi], trained).is_some() => {
+        None if opts.cache.is_none() && super::extend::missing(plan.albedo_range, trained).is_some() => {
             Effect {
                 name: "kernel simulation (missing albedo range)",
                 needed: false,
@@ -374,8 +377,8 @@ fn range_effect(
                 format!(
                     "α ∈ [{}, {}] lies outside the trained [{}, {}]: extension reused from the \
                      cache ({}), no simulation",
-                    e.missing[0],
-                    e.missing[1],
+                    r(e.missing[0]),
+                    r(e.missing[1]),
                     trained[0],
                     trained[1],
                     e.model.display()
@@ -384,8 +387,8 @@ fn range_effect(
                 format!(
                     "α ∈ [{}, {}] lies outside the trained [{}, {}]: simulated {} paths at α = \
                      {:?} and fitted in {:.1} s, only that range (cached as {})",
-                    e.missing[0],
-                    e.missing[1],
+                    r(e.missing[0]),
+                    r(e.missing[1]),
                     trained[0],
                     trained[1],
                     e.paths,
