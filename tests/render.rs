@@ -19,6 +19,15 @@ fn scene_file(name: &str, toml: &str) -> PathBuf {
     p
 }
 
+/// [`scene_file`] with `head` and the small standard light and image:
+/// a collimated disk of radius 1 MFP, 8 × 8 pixels over [−2, 2]² MFP.
+fn small_scene(name: &str, head: &str) -> PathBuf {
+    scene_file(
+        name,
+        &format!("{head}[light]\nradius = 1.0\n[image]\nresolution = 8\nhalf_width = 2.0\n"),
+    )
+}
+
 fn options(targets: Vec<Target>, spp: u32, paths: u64, out: &str) -> RenderOptions {
     let dir = std::env::temp_dir().join(format!("svk-render-out-{}-{out}", std::process::id()));
     RenderOptions {
@@ -93,17 +102,12 @@ half_width = 2.0
 /// density map renders as the constant, without a pyramid, to rounding.
 #[test]
 fn grey_rgb_renders_one_channel_and_constant_density_no_pyramid() {
-    let p = scene_file(
+    let p = small_scene(
         "grey_rgb",
         r#"
 texel = 0.1
 albedo = { pattern = "stripes", values = [[0.3, 0.3, 0.3], [0.9, 0.9, 0.9]], width = 0.5 }
 density = { pattern = "stripes", values = [2.0, 2.0], width = 0.5 }
-[light]
-radius = 1.0
-[image]
-resolution = 8
-half_width = 2.0
 "#,
     );
     let scene = Scene::load(&p).unwrap();
@@ -191,16 +195,11 @@ half_width = 2.0
 /// accurate to 0.2 % of R_d).
 #[test]
 fn reference_and_model_agree_pixel_by_pixel_on_a_homogeneous_medium() {
-    let p = scene_file(
+    let p = small_scene(
         "agree",
         r#"
 texel = 0.25
 albedo = { constant = 0.9 }
-[light]
-radius = 1.0
-[image]
-resolution = 8
-half_width = 2.0
 "#,
     );
     let scene = Scene::load(&p).unwrap();
@@ -238,18 +237,13 @@ half_width = 2.0
 
 #[test]
 fn reference_is_bitwise_the_same_for_threads_and_shards() {
-    let p = scene_file(
+    let p = small_scene(
         "determinism",
         r#"
 texel = 0.25
 albedo = { pattern = "checker", values = [0.3, 0.95], cell = 0.5 }
 density = { pattern = "ramp", values = [0.5, 3.0], length = 4.0 }
 observable = "radiance"
-[light]
-radius = 1.0
-[image]
-resolution = 8
-half_width = 2.0
 "#,
     );
     let scene = Scene::load(&p).unwrap();

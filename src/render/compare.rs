@@ -350,7 +350,9 @@ fn range_effect(
         .all
         .alpha_range;
     Ok(Some(match extension {
-        None if opts.cache.is_none() && super::extend::missing(plan.albedo_range, trained).is_some() => {
+        None if opts.cache.is_none()
+            && super::extend::missing(plan.albedo_range, trained).is_some() =>
+        {
             Effect {
                 name: "kernel simulation (missing albedo range)",
                 needed: false,
