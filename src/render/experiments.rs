@@ -63,7 +63,8 @@ pub struct Row {
     pub rel_bias: f64,
     /// √(Σσ²/Σr²): the image's relative noise.
     pub rel_noise: f64,
-    /// The smallest rel RMSE this comparison resolves ([`resolution`]).
+    /// The smallest rel RMSE this comparison resolves: ν·(2/N)^{1/4}, ν the
+    /// two images' combined relative noise over N pixel values.
     pub resolution: f64,
 }
 

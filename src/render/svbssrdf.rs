@@ -159,7 +159,7 @@ impl Variant {
 const TABLE_NODES: usize = 8192;
 
 /// The basis model tabulated for fast evaluation: ln(A_k/(2πα²)) and B_k at
-/// [`TABLE_NODES`] equally spaced values of x = √(1 − α), linearly
+/// `TABLE_NODES` (8192) equally spaced values of x = √(1 − α), linearly
 /// interpolated (max relative error of Rₘ against [`BasisModel::multi`]
 /// for r ≤ 10 MFP and any α: < 1e-4, tested), plus p₁ at α = 1.
 #[derive(Clone, Debug)]
