@@ -587,20 +587,22 @@ fn node_stencil(src: (f64, f64, usize), dst: (f64, f64, usize), s: f64) -> Stenc
 }
 
 /// Separable convolution of a row-major `rows × cols` array: columns through
-/// `sx`, then rows through `sy`; the result is `sy.len() × sx.len()`.
+/// `sx`, then rows through `sy`; the result is `sy.len() × sx.len()`. Rows
+/// are split over rayon's threads; every output value is the same sum in
+/// the same order whatever the thread count (bitwise deterministic).
 fn convolve(src: &[f64], rows: usize, cols: usize, sx: &Stencil, sy: &Stencil) -> Vec<f64> {
+    use rayon::prelude::*;
     let (ox, oy) = (sx.start.len(), sy.start.len());
     let mut tmp = vec![0.0; rows * ox];
-    for r in 0..rows {
+    tmp.par_chunks_mut(ox).enumerate().for_each(|(r, out)| {
         let row = &src[r * cols..(r + 1) * cols];
-        for (k, t) in tmp[r * ox..(r + 1) * ox].iter_mut().enumerate() {
+        for (k, t) in out.iter_mut().enumerate() {
             let w = &sx.w[sx.off[k]..sx.off[k] + sx.len[k]];
             *t = row[sx.start[k]..].iter().zip(w).map(|(a, b)| a * b).sum();
         }
-    }
+    });
     let mut out = vec![0.0; oy * ox];
-    for k in 0..oy {
-        let dst = &mut out[k * ox..(k + 1) * ox];
+    out.par_chunks_mut(ox).enumerate().for_each(|(k, dst)| {
         let w = &sy.w[sy.off[k]..sy.off[k] + sy.len[k]];
         for (t, wt) in w.iter().enumerate() {
             let r = sy.start[k] + t;
@@ -608,7 +610,7 @@ fn convolve(src: &[f64], rows: usize, cols: usize, sx: &Stencil, sy: &Stencil) -
                 *d += wt * s;
             }
         }
-    }
+    });
     out
 }
 
