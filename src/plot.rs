@@ -195,46 +195,44 @@ pub fn chart(path: &Path, axes: &Axes, series: &[Series]) -> Result<()> {
 /// [`chart`] as SVG (900×600), written atomically.
 pub fn chart_svg(path: &Path, axes: &Axes, series: &[Series]) -> Result<()> {
     let r = chart_ranges(axes, series);
-    let tmp = crate::io::temp_sibling(path);
-    let result = (|| -> DrawResult {
-        let root = SVGBackend::new(&tmp, (900, 600)).into_drawing_area();
+    atomic(path, |tmp| {
+        let root = SVGBackend::new(tmp, (900, 600)).into_drawing_area();
         root.fill(&WHITE)?;
         let drawn: DrawResult = draw_chart!(&root, axes, series, r);
         drawn?;
         root.present()?;
         Ok(())
-    })();
-    result.map_err(|e| {
+    })
+}
+
+/// What a drawing closure returns.
+type DrawResult = std::result::Result<(), Box<dyn std::error::Error>>;
+
+/// Runs `draw` on a temporary sibling of `path` and renames it into place,
+/// so a failure leaves nothing behind (the error names the file).
+fn atomic(path: &Path, draw: impl FnOnce(&Path) -> DrawResult) -> Result<()> {
+    let tmp = crate::io::temp_sibling(path);
+    draw(&tmp).map_err(|e| {
         let _ = std::fs::remove_file(&tmp);
         Error::format(path, "(plot)", e)
     })?;
     crate::io::commit(&tmp, path)
 }
 
-/// What a drawing closure returns.
-type DrawResult = std::result::Result<(), Box<dyn std::error::Error>>;
-
 /// Draws a PNG of `size` pixels to `path`: `draw` paints on a white root
-/// area, which is written to a temporary sibling and renamed, so a failure
-/// leaves nothing behind (the error names the file).
+/// area, written atomically ([`atomic`]).
 fn png(
     path: &Path,
     size: (u32, u32),
     draw: impl FnOnce(&DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>) -> DrawResult,
 ) -> Result<()> {
-    let tmp = crate::io::temp_sibling(path);
-    let result = (|| -> DrawResult {
-        let root = BitMapBackend::new(&tmp, size).into_drawing_area();
+    atomic(path, |tmp| {
+        let root = BitMapBackend::new(tmp, size).into_drawing_area();
         root.fill(&WHITE)?;
         draw(&root)?;
         root.present()?;
         Ok(())
-    })();
-    result.map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        Error::format(path, "(plot)", e)
-    })?;
-    crate::io::commit(&tmp, path)
+    })
 }
 
 fn fmt_tick(v: f64, log: bool) -> String {

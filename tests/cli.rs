@@ -42,6 +42,27 @@ fn small_scene(
     path.to_path_buf()
 }
 
+/// Runs `svkernel ARGS --checkpoint-every 0 --out OUT`, waits (≤ 120 s)
+/// until `ckpt` exists, kills it with SIGKILL and asserts the checkpoint
+/// was written.
+fn kill_after_checkpoint(args: &[&str], out: &Path, ckpt: &Path) {
+    let mut child = bin()
+        .args(args)
+        .args(["--checkpoint-every", "0", "--out"])
+        .arg(out)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let t0 = Instant::now();
+    while !ckpt.exists() && t0.elapsed() < Duration::from_secs(120) {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.kill().unwrap(); // SIGKILL
+    child.wait().unwrap();
+    assert!(ckpt.exists(), "no checkpoint was written");
+}
+
 /// `svkernel merge PARTS --out OUT`, which must succeed.
 fn merge_ok(parts: &[PathBuf], out: &Path) {
     let o = bin()
@@ -185,22 +206,9 @@ fn resume_after_kill_is_bitwise_identical() {
 
     let out = d.join("run.json");
     let ckpt = d.join("run.json.ckpt");
-    let mut child = bin()
-        .args(["simulate", "profile"])
-        .args(common)
-        .args(["--checkpoint-every", "0", "--out"])
-        .arg(&out)
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let t0 = Instant::now();
-    while !ckpt.exists() && t0.elapsed() < Duration::from_secs(120) {
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    child.kill().unwrap(); // SIGKILL
-    child.wait().unwrap();
-    assert!(ckpt.exists(), "no checkpoint was written");
+    let mut args = vec!["simulate", "profile"];
+    args.extend(common);
+    kill_after_checkpoint(&args, &out, &ckpt);
     assert!(!out.exists(), "the killed run must not leave an output");
     let o = bin()
         .args(["simulate", "profile"])
@@ -558,21 +566,7 @@ fn render_resume_after_kill_is_bitwise_identical() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let out = d.join("run");
     let ckpt = out.join("reference.main.ckpt");
-    let mut child = bin()
-        .args(common)
-        .args(["--checkpoint-every", "0", "--out"])
-        .arg(&out)
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let t0 = Instant::now();
-    while !ckpt.exists() && t0.elapsed() < Duration::from_secs(120) {
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    child.kill().unwrap();
-    child.wait().unwrap();
-    assert!(ckpt.exists(), "no checkpoint was written");
+    kill_after_checkpoint(&common, &out, &ckpt);
     assert!(!out.join("render.json").exists() && !out.join("main/reference.exr").exists());
     let o = bin()
         .args(common)

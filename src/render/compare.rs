@@ -290,7 +290,7 @@ pub fn compare_scene(
     let mut analysis = serde_json::to_value(&plan).expect("plain data");
     let extension = passes.first().and_then(|p| p.extension.as_ref());
     if let (Some(effect), Some(list)) = (
-        range_effect(scene, opts, extension)?,
+        range_effect(scene, &plan, opts, extension)?,
         analysis["effects"].as_array_mut(),
     ) {
         list.push(serde_json::to_value(effect).expect("plain data"));
@@ -335,13 +335,13 @@ pub fn compare_scene(
 /// `learned`: nothing to simulate, or what the extension did.
 fn range_effect(
     scene: &Scene,
+    plan: &super::analysis::Plan,
     opts: &RenderOptions,
     extension: Option<&super::extend::Extension>,
 ) -> Result<Option<Effect>> {
     if !scene.methods.iter().any(|m| m == "learned") {
         return Ok(None);
     }
-    let plan = analyse(scene, opts.analysis);
     let [lo, hi] = plan.albedo_range;
     // Albedos to three decimals in the text.
     let r = |v: f64| (v * 1e3).round() / 1e3;
@@ -485,9 +485,9 @@ pub fn report_blocks(doc: &serde_json::Value, out: &Path) -> Vec<Block> {
             s(&render["provenance"]["git_commit"]),
         )),
         Block::Heading(3, "What the scene calls for".into()),
-        Block::Table {
-            header: vec!["effect".into(), "simulated".into(), "why".into()],
-            rows: doc["analysis"]["effects"]
+        Block::table(
+            &["effect", "simulated", "why"],
+            doc["analysis"]["effects"]
                 .as_array()
                 .into_iter()
                 .flatten()
@@ -504,7 +504,7 @@ pub fn report_blocks(doc: &serde_json::Value, out: &Path) -> Vec<Block> {
                     ]
                 })
                 .collect(),
-        },
+        ),
     ];
     match doc["savings"].as_object() {
         Some(sv) => {
@@ -513,14 +513,9 @@ pub fn report_blocks(doc: &serde_json::Value, out: &Path) -> Vec<Block> {
                 sv["saved_s"].as_f64().unwrap_or(0.0),
                 s(&sv["how"])
             )));
-            b.push(Block::Table {
-                header: vec![
-                    "target".into(),
-                    "with skips [s]".into(),
-                    "without [s]".into(),
-                    "saved [s]".into(),
-                ],
-                rows: sv["targets"]
+            b.push(Block::table(
+                &["target", "with skips [s]", "without [s]", "saved [s]"],
+                sv["targets"]
                     .as_array()
                     .into_iter()
                     .flatten()
@@ -533,7 +528,7 @@ pub fn report_blocks(doc: &serde_json::Value, out: &Path) -> Vec<Block> {
                         ]
                     })
                     .collect(),
-            });
+            ));
         }
         None => b.push(Block::Para(
             "The skips above are already implied by how the scene is written (a grey map, no \
@@ -644,8 +639,8 @@ pub fn report_blocks(doc: &serde_json::Value, out: &Path) -> Vec<Block> {
             ),
             path: out.join("error_time.png"),
         });
-        b.push(Block::Table {
-            header: [
+        b.push(Block::table(
+            &[
                 "method",
                 "spp",
                 "time [s]",
@@ -653,10 +648,8 @@ pub fn report_blocks(doc: &serde_json::Value, out: &Path) -> Vec<Block> {
                 "reference time to same error [s]",
                 "speed-up",
                 "error floor",
-            ]
-            .map(String::from)
-            .into(),
-            rows: curves["speedups"]
+            ],
+            curves["speedups"]
                 .as_array()
                 .into_iter()
                 .flatten()
@@ -672,7 +665,7 @@ pub fn report_blocks(doc: &serde_json::Value, out: &Path) -> Vec<Block> {
                     ]
                 })
                 .collect(),
-        });
+        ));
         b.push(Block::Para(
             "Per model: the budget where it beats brute force by the most. The reference's time \
              to the same error is read off its curve (log-log interpolation; beyond its points, \

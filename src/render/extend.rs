@@ -125,18 +125,18 @@ fn hash(parts: &[&[u8]]) -> String {
     format!("{h:016x}")
 }
 
-/// Makes sure an extension of `meta_path` over `missing` exists in `cache`
-/// (module docs), simulating with the configuration of the training
-/// tallies `kernels_path` at new albedos; returns it and whether it was
-/// cached.
+/// Makes sure an extension of `meta` (loaded from `meta_path`) over
+/// `missing` exists in `cache` (module docs), simulating with the
+/// configuration of the training tallies `kernels_path` at new albedos;
+/// returns what was done and the extension model.
 pub fn ensure(
+    meta: &MetaModelFile,
     meta_path: &Path,
     kernels_path: &Path,
     missing: [f64; 2],
     cache: &Path,
     progress: bool,
-) -> Result<Extension> {
-    let meta = MetaModelFile::load(meta_path)?;
+) -> Result<(Extension, MetaModelFile)> {
     let trained = meta.all.alpha_range;
     let training = KernelDoc::load(kernels_path)?;
     let albedos = albedos(missing, trained);
@@ -149,18 +149,13 @@ pub fn ensure(
     let meta_bytes = std::fs::read(meta_path).map_err(|e| Error::io(meta_path, e))?;
     let config_json =
         serde_json::to_vec(&config).map_err(|e| Error::format(kernels_path, "config", e))?;
-    let key = hash(&[
-        b"svkernel extension v1",
-        &meta_bytes,
-        &config_json,
-        format!("{:?}", (meta.all.k, meta.all.deg_x)).as_bytes(),
-    ]);
+    let key = hash(&[b"svkernel extension v1", &meta_bytes, &config_json]);
     let model = cache.join(format!("metamodel_ext_{key}.json"));
     let kernels = cache.join(format!("kernels_ext_{key}.json"));
     if model.exists() && kernels.exists() {
         // A damaged cache entry is an error naming the file, not a silent refit.
-        MetaModelFile::load(&model)?;
-        return Ok(Extension {
+        let loaded = MetaModelFile::load(&model)?;
+        let done = Extension {
             missing,
             albedos,
             paths: config.paths,
@@ -168,7 +163,8 @@ pub fn ensure(
             kernels,
             cached: true,
             wall_s: 0.0,
-        });
+        };
+        return Ok((done, loaded));
     }
     let t0 = Instant::now();
     let opts = RunOptions {
@@ -187,7 +183,8 @@ pub fn ensure(
         meta.all.k,
         degree,
     )?;
-    Ok(Extension {
+    let loaded = MetaModelFile::load(&model)?;
+    let done = Extension {
         missing,
         albedos,
         paths: doc.paths,
@@ -195,7 +192,8 @@ pub fn ensure(
         kernels,
         cached: false,
         wall_s: t0.elapsed().as_secs_f64(),
-    })
+    };
+    Ok((done, loaded))
 }
 
 #[cfg(test)]

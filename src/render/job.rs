@@ -320,17 +320,22 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
     };
     let plan = analyse(scene, opts.analysis);
     // Albedos outside the trained range: simulate and fit only those.
-    let extension = match (&meta, &opts.cache) {
-        (Some(m), Some(cache)) => extend::missing(plan.albedo_range, m.all.alpha_range)
-            .map(|missing| {
-                extend::ensure(&opts.meta, &opts.kernels, missing, cache, opts.run.progress)
-            })
-            .transpose()?,
-        _ => None,
-    };
-    let extension_model = match &extension {
-        Some(e) => Some(Arc::new(MetaModelFile::load(&e.model)?)),
-        None => None,
+    let (extension, extension_model) = match (&meta, &opts.cache) {
+        (Some(m), Some(cache)) => match extend::missing(plan.albedo_range, m.all.alpha_range) {
+            Some(missing) => {
+                let (done, model) = extend::ensure(
+                    m,
+                    &opts.meta,
+                    &opts.kernels,
+                    missing,
+                    cache,
+                    opts.run.progress,
+                )?;
+                (Some(done), Some(Arc::new(model)))
+            }
+            None => (None, None),
+        },
+        _ => (None, None),
     };
     let view = View {
         light_radius: scene.light_radius,
