@@ -33,6 +33,7 @@
 
 pub mod demo;
 pub mod error;
+pub mod fastmath;
 pub mod fit;
 pub mod forward;
 pub mod io;

@@ -32,6 +32,7 @@
 use super::kernel::scale_for_density;
 use super::kernel::{Component, Gmm, optical_distance};
 use crate::error::{Error, Result};
+use crate::fastmath::exp4;
 use crate::pair::VertexClass;
 use crate::provenance::Provenance;
 use serde::{Deserialize, Serialize};
@@ -111,18 +112,15 @@ pub struct KernelQuery {
     pub clamped: bool,
 }
 
-/// Chebyshev T_0..T_n at t (n ≤ MAX_DEGREE).
+/// Chebyshev T_0..T_{MAX_DEGREE} at t (all of them: a fixed, branch-free
+/// recurrence; callers read the first deg + 1).
 #[inline(always)]
-fn cheb(t: f64, n: usize) -> [f64; MAX_DEGREE + 1] {
+fn cheb(t: f64) -> [f64; MAX_DEGREE + 1] {
     let mut out = [0.0; MAX_DEGREE + 1];
     out[0] = 1.0;
-    if n >= 1 {
-        out[1] = t;
-    }
-    let mut j = 2;
-    while j <= n {
-        out[j] = 2.0 * t * out[j - 1] - out[j - 2];
-        j += 1;
+    out[1] = t;
+    for j in 2..=MAX_DEGREE {
+        out[j] = (2.0 * t).mul_add(out[j - 1], -out[j - 2]);
     }
     out
 }
@@ -191,7 +189,7 @@ impl MetaModel {
 
     /// The tensor basis T_a(x)·T_b(y) at (x, y), in coefficient order.
     pub fn basis(&self, [x, y]: [f64; 2]) -> Vec<f64> {
-        let (tx, ty) = (cheb(x, self.deg_x), cheb(y, self.deg_y));
+        let (tx, ty) = (cheb(x), cheb(y));
         let mut out = Vec::with_capacity(self.n_coeffs());
         for a in tx.iter().take(self.deg_x + 1) {
             for b in ty.iter().take(self.deg_y + 1) {
@@ -204,57 +202,93 @@ impl MetaModel {
     /// The shape parameters θ at normalised coordinates (first 3K − 1
     /// entries; no allocation).
     #[inline]
-    pub fn params_at(&self, [x, y]: [f64; 2]) -> [f64; 3 * MAX_K - 1] {
-        let (tx, ty) = (cheb(x, self.deg_x), cheb(y, self.deg_y));
-        let ny = self.deg_y + 1;
-        let packed = &self.prepared().packed;
-        // One pass over the basis with a fixed-width accumulator: the adds
-        // of different parameters are independent and vectorise.
-        let mut acc = [0.0; PACK];
-        for a in 0..=self.deg_x {
-            for b in 0..ny {
-                let basis = tx[a] * ty[b];
-                for (o, c) in acc.iter_mut().zip(&packed[a * ny + b]) {
-                    *o = c.mul_add(basis, *o);
-                }
-            }
+    pub fn params_at(&self, xy: [f64; 2]) -> [f64; 3 * MAX_K - 1] {
+        // K ≤ 3 needs at most 8 parameters: half the multiply-adds.
+        if Self::n_params(self.k) <= PACK / 2 {
+            self.params_packed::<{ PACK / 2 }>(xy)
+        } else {
+            self.params_packed::<PACK>(xy)
         }
-        std::array::from_fn(|j| acc[j])
     }
 
-    /// The mixture from shape parameters θ at unit-density distance d (module
-    /// docs), every length multiplied by `scale`, written into `out`
-    /// (reusing its allocation).
-    #[inline]
-    fn gmm_scaled_into(k: usize, theta: &[f64], d: f64, scale: f64, out: &mut Gmm) {
+    /// [`Self::params_at`] with the parameters padded to `W` (≤ [`PACK`]).
+    /// Horner-free tensor sum Σ_a T_a(x)·(Σ_b c_ab T_b(y)): the inner sums of
+    /// different rows a are independent, so they overlap in the pipeline
+    /// instead of forming one (deg_x + 1)(deg_y + 1)-long chain of
+    /// dependent multiply-adds per parameter.
+    #[inline(always)]
+    fn params_packed<const W: usize>(&self, [x, y]: [f64; 2]) -> [f64; 3 * MAX_K - 1] {
+        let (tx, ty) = (cheb(x), cheb(y));
+        let ny = self.deg_y + 1;
+        let packed = &self.prepared().packed;
+        let mut acc = [0.0; W];
+        for (rows, &txa) in packed.chunks_exact(ny).zip(&tx[..=self.deg_x]) {
+            let mut row = [0.0; W];
+            for (c, &tyb) in rows.iter().zip(&ty[..ny]) {
+                for (o, c) in row.iter_mut().zip(c) {
+                    *o = c.mul_add(tyb, *o);
+                }
+            }
+            for (o, r) in acc.iter_mut().zip(&row) {
+                *o = r.mul_add(txa, *o);
+            }
+        }
+        std::array::from_fn(|j| if j < W { acc[j] } else { 0.0 })
+    }
+
+    /// The mixture of `K` components from shape parameters θ at
+    /// unit-density distance d (module docs), every length multiplied by
+    /// `scale`, written into `out` (reusing its allocation). `K` is a
+    /// compile-time constant so that every loop below unrolls.
+    #[inline(always)]
+    fn gmm_scaled_into<const K: usize>(theta: &[f64], d: f64, scale: f64, out: &mut Gmm) {
         let lambda = 0.5 * d + 1.0;
         let logit = |i: usize| if i == 0 { 0.0 } else { theta[i - 1] };
-        let m = (0..k).map(logit).fold(f64::NEG_INFINITY, f64::max);
-        // The 2K exponentials (softmax, widths) four at a time (SIMD exp of
-        // `wide`, ≈ 1 ulp).
+        let m = (1..K).map(logit).fold(0.0, f64::max);
+        // The 2K exponentials (softmax, widths) four at a time ([`exp4`],
+        // ≤ 2 ulp; every argument is bounded: logits minus their maximum,
+        // log widths clamped to ±30).
         let mut args = [0.0; 4 * (2 * MAX_K).div_ceil(4)];
-        for i in 0..k {
+        for i in 0..K {
             args[i] = logit(i) - m;
-            args[k + i] = theta[2 * k - 1 + i].clamp(-30.0, 30.0);
+            args[K + i] = theta[2 * K - 1 + i].clamp(-30.0, 30.0);
         }
         let mut e = [0.0; 4 * (2 * MAX_K).div_ceil(4)];
-        for (o, a) in e
-            .chunks_exact_mut(4)
-            .zip(args.chunks_exact(4))
-            .take((2 * k).div_ceil(4))
-        {
-            o.copy_from_slice(&wide::f64x4::from([a[0], a[1], a[2], a[3]]).exp().to_array());
+        for c in 0..(2 * K).div_ceil(4) {
+            let a = wide::f64x4::from([
+                args[4 * c],
+                args[4 * c + 1],
+                args[4 * c + 2],
+                args[4 * c + 3],
+            ]);
+            e[4 * c..4 * c + 4].copy_from_slice(&exp4(a).to_array());
         }
-        let inv_z = 1.0 / e[..k].iter().sum::<f64>();
+        let inv_z = 1.0 / e[..K].iter().sum::<f64>();
+        let (ts, ss) = (scale * 0.5 * d, scale * lambda);
+        let components: [Component; K] = std::array::from_fn(|i| Component {
+            weight: e[i] * inv_z,
+            t: ss.mul_add(theta[K - 1 + i], ts),
+            s: 0.0,
+            sigma: ss * e[K + i],
+        });
         out.components.clear();
-        for i in 0..k {
-            out.components.push(Component {
-                weight: e[i] * inv_z,
-                t: scale * (0.5 * d + lambda * theta[k - 1 + i]),
-                s: 0.0,
-                sigma: scale * lambda * e[k + i],
-            });
-        }
+        out.components.extend_from_slice(&components);
+    }
+
+    /// [`Self::eval_into`] for `K` components and parameters padded to `W`.
+    #[inline(always)]
+    fn eval_k<const K: usize, const W: usize>(
+        &self,
+        d: f64,
+        alpha: f64,
+        rho: f64,
+        out: &mut Gmm,
+    ) -> bool {
+        let d1 = optical_distance(d, rho);
+        let (xy, clamped) = self.coordinates(d1, alpha);
+        let theta = self.params_packed::<W>(xy);
+        Self::gmm_scaled_into::<K>(&theta, d1.max(0.0), 1.0 / rho, out);
+        clamped
     }
 
     /// The kernel at (d, α, ρ): evaluated at the optical distance ρd and
@@ -274,11 +308,15 @@ impl MetaModel {
     /// `clamped`.
     #[inline]
     pub fn eval_into(&self, d: f64, alpha: f64, rho: f64, out: &mut Gmm) -> bool {
-        let d1 = optical_distance(d, rho);
-        let (xy, clamped) = self.coordinates(d1, alpha);
-        let theta = self.params_at(xy);
-        Self::gmm_scaled_into(self.k, &theta, d1.max(0.0), 1.0 / rho, out);
-        clamped
+        // K ≤ 3 has at most 8 shape parameters: half the multiply-adds.
+        match self.k {
+            1 => self.eval_k::<1, { PACK / 2 }>(d, alpha, rho, out),
+            2 => self.eval_k::<2, { PACK / 2 }>(d, alpha, rho, out),
+            3 => self.eval_k::<3, { PACK / 2 }>(d, alpha, rho, out),
+            4 => self.eval_k::<4, PACK>(d, alpha, rho, out),
+            5 => self.eval_k::<5, PACK>(d, alpha, rho, out),
+            k => panic!("meta-model with K = {k} outside 1..={MAX_K} (not validated)"),
+        }
     }
 
     fn check(&self, path: &Path, class: &str) -> Result<()> {
