@@ -71,6 +71,8 @@
 use crate::error::{Error, Result};
 use crate::forward::maps::TexelMap;
 use crate::metamodel::kernel::gauss_interval;
+use wide::bytemuck::cast;
+use wide::{CmpGe, CmpGt, f64x4, u64x4};
 
 /// σ_0/τ: the width of level 0 in texels. Below σ_0 the query falls back to
 /// the exact erf sum over a window of at most ⌊14σ_0/τ⌋ + 2 texels a side.
@@ -92,6 +94,9 @@ pub const EXACT_HALF_WIDTH: f64 = 6.0;
 
 /// Texels per axis of the fallback window, at most: ⌊2·6·σ_0/τ⌋ + 2.
 const MAX_WINDOW: usize = (2.0 * EXACT_HALF_WIDTH * SIGMA0_TEXELS) as usize + 2;
+
+/// [`MAX_WINDOW`] rounded up to whole SIMD registers of four.
+const WINDOW_LANES: usize = 4 * MAX_WINDOW.div_ceil(4);
 
 /// The most values any query reads (texels or pyramid nodes), whatever μ
 /// and σ: the fallback window below σ_0 (16² = 256); the pyramid reads 8 and
@@ -138,6 +143,10 @@ struct Level {
     sx: usize,
     sy: usize,
     offset: usize,
+    /// 1/h and the largest node coordinates sx − 1, sy − 1 (for queries).
+    inv_h: f64,
+    u_max: f64,
+    v_max: f64,
 }
 
 impl Level {
@@ -146,14 +155,21 @@ impl Level {
         let h = sigma / cfg.samples_per_sigma;
         let ex = half[0] + MARGIN_SIGMAS * sigma;
         let ey = half[1] + MARGIN_SIGMAS * sigma;
+        let (sx, sy) = (
+            (2.0 * ex / h).ceil() as usize + 1,
+            (2.0 * ey / h).ceil() as usize + 1,
+        );
         Level {
             sigma,
             h,
             x0: -ex,
             y0: -ey,
-            sx: (2.0 * ex / h).ceil() as usize + 1,
-            sy: (2.0 * ey / h).ceil() as usize + 1,
+            sx,
+            sy,
             offset,
+            inv_h: 1.0 / h,
+            u_max: (sx - 1) as f64,
+            v_max: (sy - 1) as f64,
         }
     }
 
@@ -161,9 +177,13 @@ impl Level {
     /// node, t_x, t_y).
     #[inline]
     fn corner(&self, mu: [f64; 2]) -> (usize, f64, f64) {
-        let u = ((mu[0] - self.x0) / self.h).clamp(0.0, (self.sx - 1) as f64);
-        let v = ((mu[1] - self.y0) / self.h).clamp(0.0, (self.sy - 1) as f64);
-        let (i, j) = ((u as usize).min(self.sx - 2), (v as usize).min(self.sy - 2));
+        let u = ((mu[0] - self.x0) * self.inv_h).clamp(0.0, self.u_max);
+        let v = ((mu[1] - self.y0) * self.inv_h).clamp(0.0, self.v_max);
+        // (u, v ≥ 0 and bounded: the signed conversion is exact and cheap.)
+        let (i, j) = (
+            (u as i64 as usize).min(self.sx - 2),
+            (v as i64 as usize).min(self.sy - 2),
+        );
         (self.offset + j * self.sx + i, u - i as f64, v - j as f64)
     }
 }
@@ -195,9 +215,11 @@ pub struct GaussianPyramid {
     map: TexelMap,
     levels: Vec<Level>,
     values: Vec<f64>,
-    /// ln σ_0 and levels per octave / ln 2, to find the level of σ in O(1).
-    ln_sigma0: f64,
-    levels_per_ln: f64,
+    /// 1/σ_0, levels per octave L and the mantissa thresholds 2^{j/L},
+    /// j = 1..L − 1, to find the level of σ in O(1) from the bits of σ/σ_0.
+    inv_sigma0: f64,
+    per_octave: usize,
+    octave_steps: Vec<f64>,
 }
 
 impl GaussianPyramid {
@@ -255,8 +277,11 @@ impl GaussianPyramid {
             map,
             levels,
             values,
-            ln_sigma0: sigma0.ln(),
-            levels_per_ln: cfg.levels_per_octave as f64 / std::f64::consts::LN_2,
+            inv_sigma0: 1.0 / sigma0,
+            per_octave: cfg.levels_per_octave,
+            octave_steps: (1..cfg.levels_per_octave)
+                .map(|j| 2f64.powf(j as f64 / cfg.levels_per_octave as f64))
+                .collect(),
         })
     }
 
@@ -313,15 +338,30 @@ impl GaussianPyramid {
         if sigma > p0.levels[top].sigma {
             return (pyramids.map(|p| p.corner_asymptote(mu, sigma)), 4);
         }
-        // Bracketing levels a, a + 1 (rounding of the log is absorbed by the clamp).
-        let lf = (sigma.ln() - p0.ln_sigma0) * p0.levels_per_ln;
-        let a = (lf.floor().max(0.0) as usize).min(top - 1);
+        // Bracketing levels a, a + 1 (rounding is absorbed by the clamp of w).
+        let a = p0.level_below(sigma).min(top - 1);
         let (la, lb) = (&p0.levels[a], &p0.levels[a + 1]);
         let (va, vb) = (la.sigma * la.sigma, lb.sigma * lb.sigma);
         let w = ((sigma * sigma - va) / (vb - va)).clamp(0.0, 1.0);
         let (ia, ib) = (la.corner(mu), lb.corner(mu));
         let values = pyramids.map(|p| (1.0 - w) * p.bilerp_at(la, ia) + w * p.bilerp_at(lb, ib));
         (values, 8)
+    }
+
+    /// ⌊L·log₂(σ/σ_0)⌋ clamped at 0: the level whose σ_ℓ = σ_0·2^{ℓ/L} is
+    /// the largest not above σ (up to rounding), from the binary exponent of
+    /// σ/σ_0 and L − 1 comparisons of its mantissa (no logarithm).
+    #[inline]
+    fn level_below(&self, sigma: f64) -> usize {
+        let q = sigma * self.inv_sigma0;
+        if q < 1.0 {
+            return 0;
+        }
+        let bits = q.to_bits();
+        let octave = ((bits >> 52) & 0x7ff) as usize - 1023;
+        let mantissa = f64::from_bits((bits & 0x000f_ffff_ffff_ffff) | 1f64.to_bits());
+        let step = self.octave_steps.iter().filter(|&&t| mantissa >= t).count();
+        octave * self.per_octave + step
     }
 
     /// Bilinear interpolation at a located corner (see [`Level::corner`]).
@@ -468,6 +508,13 @@ static PHI_TABLE: std::sync::LazyLock<Vec<(f64, f64)>> = std::sync::LazyLock::ne
 /// (Φc(6.5) = 4e-11). A few nanoseconds against ~20 for `erfc`.
 #[inline]
 pub fn fast_phi(z: f64) -> f64 {
+    phi_hermite(PHI_TABLE.as_slice(), z)
+}
+
+/// [`fast_phi`] on a table fetched once by the caller (the lazy table's
+/// initialisation check stays out of loops over many edges).
+#[inline(always)]
+fn phi_hermite(t: &[(f64, f64)], z: f64) -> f64 {
     if z.is_nan() || z <= -PHI_RANGE {
         return 0.0;
     }
@@ -475,7 +522,6 @@ pub fn fast_phi(z: f64) -> f64 {
         return 1.0;
     }
     let u = (z + PHI_RANGE) * PHI_NODES_PER_UNIT;
-    let t = PHI_TABLE.as_slice();
     let k = (u as usize).min(t.len() - 2);
     let (x, h) = (u - k as f64, 1.0 / PHI_NODES_PER_UNIT);
     let ((p0, d0), (p1, d1)) = (t[k], t[k + 1]);
@@ -484,6 +530,39 @@ pub fn fast_phi(z: f64) -> f64 {
         + (x3 - 2.0 * x2 + x) * h * d0
         + (-2.0 * x3 + 3.0 * x2) * p1
         + (x3 - x2) * h * d1
+}
+
+/// [`phi_hermite`] in four lanes (the same table and formula; the table
+/// reads stay scalar).
+#[inline(always)]
+fn phi_hermite4(t: &[(f64, f64)], z: f64x4) -> f64x4 {
+    let zc = z
+        .fast_max(f64x4::splat(-PHI_RANGE))
+        .fast_min(f64x4::splat(PHI_RANGE));
+    let u = (zc + f64x4::splat(PHI_RANGE)) * f64x4::splat(PHI_NODES_PER_UNIT);
+    let kf = u.floor();
+    // The node index from the low mantissa bits of kf + 2^52 (0 ≤ kf < 2^31).
+    let bits: u64x4 = cast(kf + f64x4::splat(4_503_599_627_370_496.0));
+    let k = bits
+        .to_array()
+        .map(|b| ((b & 0xffff_ffff) as usize).min(t.len() - 2));
+    // (Where the index is clamped, z ≥ 6.5 and the lane is replaced below.)
+    let x = u - kf;
+    let gather = |f: &dyn Fn(usize) -> f64| f64x4::from(k.map(f));
+    let (p0, d0) = (gather(&|k| t[k].0), gather(&|k| t[k].1));
+    let (p1, d1) = (gather(&|k| t[k + 1].0), gather(&|k| t[k + 1].1));
+    let h = f64x4::splat(1.0 / PHI_NODES_PER_UNIT);
+    let (x2, x3) = (x * x, x * x * x);
+    let two = f64x4::splat(2.0);
+    let three = f64x4::splat(3.0);
+    let v = (two * x3 - three * x2 + f64x4::ONE) * p0
+        + (x3 - two * x2 + x) * h * d0
+        + (three * x2 - two * x3) * p1
+        + (x3 - x2) * h * d1;
+    // 0 at and below −6.5 (and for NaN), 1 at and above +6.5, as the scalar.
+    let below = !z.simd_gt(f64x4::splat(-PHI_RANGE));
+    let above = z.simd_ge(f64x4::splat(PHI_RANGE));
+    above.blend(f64x4::ONE, v & !below)
 }
 
 /// The normal masses of the texels `lo..=hi` along one axis for N(m, σ²),
@@ -507,10 +586,18 @@ fn edge_masses(
     let (n, mu) = if y_axis { (map.ny, -m) } else { (map.nx, m) };
     let x0 = -0.5 * n as f64 * tau;
     // Φ at the edges (0 and 1 at the outer, infinite ones).
-    let mut phi = [0.0; MAX_WINDOW + 1];
-    for (k, p) in phi.iter_mut().enumerate().take(count).skip(1) {
-        *p = fast_phi((x0 + (lo + k) as f64 * tau - mu) / sigma);
+    // Four edges per step ([`phi_hermite4`]); lanes past the last inner edge
+    // are computed and overwritten.
+    let mut phi = [0.0; 4 * (MAX_WINDOW + 1).div_ceil(4) + 4];
+    let (table, inv_sigma) = (PHI_TABLE.as_slice(), 1.0 / sigma);
+    let z1 = (x0 + (lo + 1) as f64 * tau - mu) * inv_sigma;
+    let dz = tau * inv_sigma;
+    let lanes = f64x4::from([0.0, 1.0, 2.0, 3.0]);
+    for c in 0..(count - 1).div_ceil(4) {
+        let z = (lanes + f64x4::splat((4 * c) as f64)).mul_add(f64x4::splat(dz), f64x4::splat(z1));
+        phi[1 + 4 * c..5 + 4 * c].copy_from_slice(&phi_hermite4(table, z).to_array());
     }
+    phi[0] = 0.0;
     phi[count] = 1.0;
     for k in 0..count {
         out[k] = phi[k + 1] - phi[k];
@@ -533,14 +620,39 @@ fn exact_window<const N: usize>(
     let (mut px, mut py) = ([0.0; MAX_WINDOW], [0.0; MAX_WINDOW]);
     let nx = edge_masses(map, false, mu[0], sigma, cols, &mut px);
     let ny = edge_masses(map, true, mu[1], sigma, rows, &mut py);
-    let values = maps.map(|m| {
-        let mut total = 0.0;
-        for (i, wy) in py[..ny].iter().enumerate() {
-            let row = &m.values[(rows.0 + i) * m.nx + cols.0..][..nx];
-            total += wy * row.iter().zip(&px[..nx]).map(|(f, wx)| f * wx).sum::<f64>();
+    // Column sums first (Σ_i py_i f_ij for all j of the window at once, in
+    // registers of four lanes), then one dot product with px. Each row is
+    // read as a fixed run of WINDOW_LANES texels from its first column (the
+    // texels past the window get px = 0; near the end of the map the row is
+    // copied into a zero-padded buffer), so no load or store is masked.
+    let mut pxv = [0.0; WINDOW_LANES];
+    pxv[..nx].copy_from_slice(&px[..nx]);
+    let mut values = [0.0; N];
+    for (v, m) in values.iter_mut().zip(maps) {
+        let mut acc = [f64x4::ZERO; WINDOW_LANES / 4];
+        for (i, &wy) in py[..ny].iter().enumerate() {
+            let start = (rows.0 + i) * m.nx + cols.0;
+            let mut padded = [0.0; WINDOW_LANES];
+            let row: &[f64] = match m.values.get(start..start + WINDOW_LANES) {
+                Some(r) => r,
+                None => {
+                    padded[..nx].copy_from_slice(&m.values[start..start + nx]);
+                    &padded
+                }
+            };
+            let w = f64x4::splat(wy);
+            for (a, f) in acc.iter_mut().zip(row.chunks_exact(4)) {
+                *a = w.mul_add(f64x4::from([f[0], f[1], f[2], f[3]]), *a);
+            }
         }
-        total
-    });
+        let dot = acc
+            .iter()
+            .zip(pxv.chunks_exact(4))
+            .fold(f64x4::ZERO, |d, (a, p)| {
+                a.mul_add(f64x4::from([p[0], p[1], p[2], p[3]]), d)
+            });
+        *v = dot.reduce_add();
+    }
     (values, nx * ny)
 }
 
@@ -821,6 +933,32 @@ mod tests {
             (fast_phi(f64::NEG_INFINITY), fast_phi(f64::INFINITY)),
             (0.0, 1.0)
         );
+    }
+
+    #[test]
+    fn four_lane_phi_is_the_scalar_bitwise() {
+        let t = PHI_TABLE.as_slice();
+        let mut z: Vec<f64> = (0..40_000)
+            .map(|k| -7.0 + 14.0 * k as f64 / 39_999.0)
+            .collect();
+        // Nodes, the range ends and beyond, and NaN.
+        z.extend([
+            -6.5,
+            6.5,
+            -6.5 + 1e-12,
+            6.5 - 1e-12,
+            0.0,
+            -1e300,
+            1e300,
+            f64::NAN,
+        ]);
+        for c in z.chunks(4) {
+            let lanes: [f64; 4] = std::array::from_fn(|i| c.get(i).copied().unwrap_or(0.3));
+            let got = phi_hermite4(t, f64x4::from(lanes)).to_array();
+            for (g, z) in got.iter().zip(lanes) {
+                assert_eq!(g.to_bits(), fast_phi(z).to_bits(), "z = {z}");
+            }
+        }
     }
 
     #[test]
