@@ -12,7 +12,7 @@
 //! softmax weight that small is zero in the sums it enters).
 
 use wide::bytemuck::cast;
-use wide::{CmpLt, f64x4, u64x4};
+use wide::{f64x4, u64x4};
 
 /// Arguments are clamped to ±this (e^±708 stays a normal double).
 const LIMIT: f64 = 708.0;
@@ -30,7 +30,7 @@ const LIMIT: f64 = 708.0;
 #[inline(always)]
 pub fn exp4(x: f64x4) -> f64x4 {
     const LN2_HI: f64 = 0.693_145_751_953_125;
-    const LN2_LO: f64 = 1.428_606_820_309_417_232_12e-6;
+    const LN2_LO: f64 = 1.428_606_820_309_417_3e-6;
     let xc = x
         .fast_max(f64x4::splat(-LIMIT))
         .fast_min(f64x4::splat(LIMIT));

@@ -72,7 +72,7 @@ use crate::error::{Error, Result};
 use crate::forward::maps::TexelMap;
 use crate::metamodel::kernel::gauss_interval;
 use wide::bytemuck::cast;
-use wide::{CmpGe, CmpGt, f64x4, u64x4};
+use wide::{f64x4, u64x4};
 
 /// σ_0/τ: the width of level 0 in texels. Below σ_0 the query falls back to
 /// the exact erf sum over a window of at most ⌊14σ_0/τ⌋ + 2 texels a side.
@@ -562,7 +562,7 @@ fn phi_hermite4(t: &[(f64, f64)], z: f64x4) -> f64x4 {
     // 0 at and below −6.5 (and for NaN), 1 at and above +6.5, as the scalar.
     let below = !z.simd_gt(f64x4::splat(-PHI_RANGE));
     let above = z.simd_ge(f64x4::splat(PHI_RANGE));
-    above.blend(f64x4::ONE, v & !below)
+    above.bitselect(f64x4::ONE, v & !below)
 }
 
 /// The normal masses of the texels `lo..=hi` along one axis for N(m, σ²),
