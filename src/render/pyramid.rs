@@ -333,7 +333,7 @@ impl GaussianPyramid {
         }
         let top = p0.levels.len() - 1;
         if sigma < p0.levels[0].sigma {
-            return exact_window(pyramids.map(|p| &p.map), mu, sigma);
+            return exact_window(std::array::from_fn(|i| &pyramids[i].map), mu, sigma);
         }
         if sigma > p0.levels[top].sigma {
             return (pyramids.map(|p| p.corner_asymptote(mu, sigma)), 4);
@@ -344,7 +344,10 @@ impl GaussianPyramid {
         let (va, vb) = (la.sigma * la.sigma, lb.sigma * lb.sigma);
         let w = ((sigma * sigma - va) / (vb - va)).clamp(0.0, 1.0);
         let (ia, ib) = (la.corner(mu), lb.corner(mu));
-        let values = pyramids.map(|p| (1.0 - w) * p.bilerp_at(la, ia) + w * p.bilerp_at(lb, ib));
+        let mut values = [0.0; N];
+        for (v, p) in values.iter_mut().zip(pyramids) {
+            *v = (1.0 - w) * p.bilerp_at(la, ia) + w * p.bilerp_at(lb, ib);
+        }
         (values, 8)
     }
 

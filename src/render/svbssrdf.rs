@@ -52,6 +52,7 @@
 //! max(r, [`R_MIN`]) so that x_i = x_e gives a large finite value.
 
 use crate::error::{Error, Result};
+use crate::fastmath::exp4;
 use crate::forward::maps::TexelMap;
 use crate::metamodel::basis::{BasisModel, ExpMixture, albedo_coordinate};
 use crate::metamodel::kernel::{Component, Gmm};
@@ -225,7 +226,7 @@ impl BasisTable {
     }
 
     /// (R₁(r; 1), Rₘ(r; α)/α²) at unit density (1/MFP²), r ≥ [`R_MIN`]:
-    /// both mixtures' exponentials in f64x4 lanes (`wide`) when the model
+    /// both mixtures' exponentials in f64x4 lanes ([`exp4`]) when the model
     /// has ≤ 4 single and ≤ 8 multiple components (the shipped one has 4
     /// and 6), else [`Self::single_exitance`] and [`Self::multi_over_alpha2`].
     #[inline]
@@ -248,7 +249,7 @@ impl BasisTable {
             let (ln_a, b) = at(j);
             e[4 + j] = ln_a - b * r;
         }
-        let v = |o: usize| wide::f64x4::from([e[o], e[o + 1], e[o + 2], e[o + 3]]).exp();
+        let v = |o: usize| exp4(wide::f64x4::from([e[o], e[o + 1], e[o + 2], e[o + 3]]));
         let single = v(0).reduce_add() / (2.0 * PI * r);
         let multi = (v(4) + v(8)).reduce_add();
         (single, multi)
