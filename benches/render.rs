@@ -49,10 +49,24 @@ fn svbssrdf(c: &mut Criterion) {
     )
     .expect("map");
     let mut g = c.benchmark_group("svbssrdf");
-    for method in Method::ALL {
+    // Every method with the default variant, and `learned` with point
+    // albedos for the local terms (one kernel instead of two).
+    let point_albedos = Variant {
+        vertex_kernels: false,
+        ..Variant::default()
+    };
+    let configs = Method::ALL
+        .into_iter()
+        .map(|m| (m, Variant::default(), m.name().to_string()))
+        .chain([(
+            Method::Learned,
+            point_albedos,
+            "learned_point_albedos".to_string(),
+        )]);
+    for (method, variant, name) in configs {
         let sv = SvBssrdf::new(
             method,
-            Variant::default(),
+            variant,
             basis.clone(),
             Some(meta.clone()),
             vec![albedo.clone()],
@@ -67,7 +81,7 @@ fn svbssrdf(c: &mut Criterion) {
                     (xi, [xi[0] + d * phi.cos(), xi[1] + d * phi.sin()])
                 })
                 .collect();
-            g.bench_with_input(BenchmarkId::new(method.name(), d), &pairs, |b, pairs| {
+            g.bench_with_input(BenchmarkId::new(&name, d), &pairs, |b, pairs| {
                 let mut scratch = Scratch::default();
                 let mut i = 0;
                 b.iter(|| {
