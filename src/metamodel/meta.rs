@@ -212,7 +212,7 @@ impl MetaModel {
     }
 
     /// [`Self::params_at`] with the parameters padded to `W` (≤ [`PACK`]).
-    /// Horner-free tensor sum Σ_a T_a(x)·(Σ_b c_ab T_b(y)): the inner sums of
+    /// The tensor sum row by row, Σ_a T_a(x)·(Σ_b c_ab T_b(y)): the inner sums of
     /// different rows a are independent, so they overlap in the pipeline
     /// instead of forming one (deg_x + 1)(deg_y + 1)-long chain of
     /// dependent multiply-adds per parameter.

@@ -99,7 +99,7 @@ const MAX_WINDOW: usize = (2.0 * EXACT_HALF_WIDTH * SIGMA0_TEXELS) as usize + 2;
 const WINDOW_LANES: usize = 4 * MAX_WINDOW.div_ceil(4);
 
 /// The most values any query reads (texels or pyramid nodes), whatever μ
-/// and σ: the fallback window below σ_0 (16² = 256); the pyramid reads 8 and
+/// and σ: the fallback window below σ_0 (14² = 196); the pyramid reads 8 and
 /// the corner asymptote 4.
 pub const MAX_READS: usize = MAX_WINDOW * MAX_WINDOW;
 
