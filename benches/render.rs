@@ -109,7 +109,7 @@ fn walks(c: &mut Criterion) {
     use svkernel::forward::tally::RadialBins;
     use svkernel::forward::walk::simulate_scalar;
     use svkernel::render::estimator::View;
-    use svkernel::render::reference::Reference;
+    use svkernel::render::reference::{Reference, Tracking};
     use svkernel::render::scene::{LightKind, Observable};
     let paths = 16_384u64;
     let view = View {
@@ -163,14 +163,37 @@ fn walks(c: &mut Criterion) {
     )
     .expect("map");
     let constant = TexelMap::new(1, 1, 0.05, vec![0.9]).expect("map");
-    // Albedo stripes and the density ramp separately, then together.
-    for (name, albedo, density) in [
-        ("reference_constant_a0.9", &constant, None),
-        ("reference_stripes", &stripes, None),
-        ("reference_a0.9_density_ramp", &constant, Some(&ramp)),
-        ("reference_stripes_density_ramp", &stripes, Some(&ramp)),
+    // Albedo stripes and the density ramp separately, then together; with a
+    // density map both trackings (the reference picks one per scene).
+    for (name, albedo, density, tracking) in [
+        ("reference_constant_a0.9", &constant, None, None),
+        ("reference_stripes", &stripes, None, None),
+        (
+            "reference_a0.9_density_ramp_regular",
+            &constant,
+            Some(&ramp),
+            Some(Tracking::Regular),
+        ),
+        (
+            "reference_a0.9_density_ramp_delta",
+            &constant,
+            Some(&ramp),
+            Some(Tracking::Delta),
+        ),
+        (
+            "reference_stripes_density_ramp_regular",
+            &stripes,
+            Some(&ramp),
+            Some(Tracking::Regular),
+        ),
+        (
+            "reference_stripes_density_ramp_delta",
+            &stripes,
+            Some(&ramp),
+            Some(Tracking::Delta),
+        ),
     ] {
-        let r = Reference::new(
+        let mut r = Reference::new(
             1.5,
             0.3,
             std::slice::from_ref(albedo),
@@ -183,6 +206,9 @@ fn walks(c: &mut Criterion) {
             paths,
         )
         .expect("reference");
+        if let Some(t) = tracking {
+            r.tracking = t;
+        }
         g.throughput(Throughput::Elements(r.chunk(0).events));
         g.bench_function(name, |b| b.iter(|| black_box(r.chunk(0))));
     }
