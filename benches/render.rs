@@ -98,11 +98,12 @@ fn svbssrdf(c: &mut Criterion) {
 criterion_group!(benches, svbssrdf, walks);
 criterion_main!(benches);
 
-/// Scattering events per second of the reference walk (`walk_tracked`
-/// through texel maps, image tally) against the homogeneous scalar walk
-/// (`simulate_scalar`) under the same collimated disk light, both on one
-/// thread: (a) a constant albedo 0.9, where only the machinery differs, and
-/// (b) the `stripes` albedo with a density ramp (τ = 0.05 MFP).
+/// Scattering events per second of the reference walk (texel maps, image
+/// tally) against the homogeneous scalar walk (`simulate_scalar`, at the
+/// reference's albedos) under the same collimated disk light, all on one
+/// thread: a constant albedo 0.9, where only the machinery differs; the
+/// `stripes` albedo; a density ramp (τ = 0.05 MFP) with regular and with
+/// delta tracking; and both together.
 fn walks(c: &mut Criterion) {
     use criterion::Throughput;
     use svkernel::forward::medium::{Medium, Source};
