@@ -166,34 +166,18 @@ fn walks(c: &mut Criterion) {
     let constant = TexelMap::new(1, 1, 0.05, vec![0.9]).expect("map");
     // Albedo stripes and the density ramp separately, then together; with a
     // density map both trackings (the reference picks one per scene).
-    for (name, albedo, density, tracking) in [
-        ("reference_constant_a0.9", &constant, None, None),
-        ("reference_stripes", &stripes, None, None),
-        (
-            "reference_a0.9_density_ramp_regular",
-            &constant,
-            Some(&ramp),
-            Some(Tracking::Regular),
-        ),
-        (
-            "reference_a0.9_density_ramp_delta",
-            &constant,
-            Some(&ramp),
-            Some(Tracking::Delta),
-        ),
-        (
-            "reference_stripes_density_ramp_regular",
-            &stripes,
-            Some(&ramp),
-            Some(Tracking::Regular),
-        ),
-        (
-            "reference_stripes_density_ramp_delta",
-            &stripes,
-            Some(&ramp),
-            Some(Tracking::Delta),
-        ),
+    let mut configs = Vec::new();
+    for (albedo, alone, with_ramp) in [
+        (&constant, "constant_a0.9", "a0.9"),
+        (&stripes, "stripes", "stripes"),
     ] {
+        configs.push((format!("reference_{alone}"), albedo, None, None));
+        for (t, how) in [(Tracking::Regular, "regular"), (Tracking::Delta, "delta")] {
+            let name = format!("reference_{with_ramp}_density_ramp_{how}");
+            configs.push((name, albedo, Some(&ramp), Some(t)));
+        }
+    }
+    for (name, albedo, density, tracking) in configs {
         let mut r = Reference::new(
             1.5,
             0.3,
@@ -211,7 +195,7 @@ fn walks(c: &mut Criterion) {
             r.tracking = t;
         }
         g.throughput(Throughput::Elements(r.chunk(0).events));
-        g.bench_function(name, |b| b.iter(|| black_box(r.chunk(0))));
+        g.bench_function(&name, |b| b.iter(|| black_box(r.chunk(0))));
     }
     g.finish();
 }

@@ -200,18 +200,7 @@ impl MetaModel {
     }
 
     /// The shape parameters θ at normalised coordinates (first 3K − 1
-    /// entries; no allocation).
-    #[inline]
-    pub fn params_at(&self, xy: [f64; 2]) -> [f64; 3 * MAX_K - 1] {
-        // K ≤ 3 needs at most 8 parameters: half the multiply-adds.
-        if Self::n_params(self.k) <= PACK / 2 {
-            self.params_packed::<{ PACK / 2 }>(xy)
-        } else {
-            self.params_packed::<PACK>(xy)
-        }
-    }
-
-    /// [`Self::params_at`] with the parameters padded to `W` (≤ [`PACK`]).
+    /// entries; no allocation), with the parameters padded to `W` (≤ [`PACK`]).
     /// The tensor sum row by row, Σ_a T_a(x)·(Σ_b c_ab T_b(y)): the inner sums of
     /// different rows a are independent, so they overlap in the pipeline
     /// instead of forming one (deg_x + 1)(deg_y + 1)-long chain of

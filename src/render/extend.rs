@@ -152,46 +152,41 @@ pub fn ensure(
     let key = hash(&[b"svkernel extension v1", &meta_bytes, &config_json]);
     let model = cache.join(format!("metamodel_ext_{key}.json"));
     let kernels = cache.join(format!("kernels_ext_{key}.json"));
-    if model.exists() && kernels.exists() {
-        // A damaged cache entry is an error naming the file, not a silent refit.
-        let loaded = MetaModelFile::load(&model)?;
-        let done = Extension {
-            missing,
-            albedos,
-            paths: config.paths,
-            model,
-            kernels,
-            cached: true,
-            wall_s: 0.0,
+    // A cached entry is reused; a damaged one is an error naming the file
+    // (from the load below), not a silent refit.
+    let cached = model.exists() && kernels.exists();
+    let (paths, t0) = (config.paths, Instant::now());
+    if !cached {
+        let opts = RunOptions {
+            progress,
+            ..Default::default()
         };
-        return Ok((done, loaded));
+        let (tally, wall_s) = config.run(None, &opts)?;
+        let chunks = vec![chunk_range(config.paths, None)];
+        let doc = KernelDoc::new(config, None, chunks, tally, wall_s, Provenance::current());
+        crate::io::write_json_compact_atomic(&kernels, &doc)?;
+        let degree = (meta.all.deg_x, meta.all.deg_y.min(EXTENSION_ALBEDOS - 2));
+        crate::fit::kernel_report::fit_kernels(
+            &kernels,
+            &model,
+            &cache.join(format!("metamodel_ext_{key}_report")),
+            meta.all.k,
+            degree,
+        )?;
     }
-    let t0 = Instant::now();
-    let opts = RunOptions {
-        progress,
-        ..Default::default()
-    };
-    let (tally, wall_s) = config.run(None, &opts)?;
-    let chunks = vec![chunk_range(config.paths, None)];
-    let doc = KernelDoc::new(config, None, chunks, tally, wall_s, Provenance::current());
-    crate::io::write_json_compact_atomic(&kernels, &doc)?;
-    let degree = (meta.all.deg_x, meta.all.deg_y.min(EXTENSION_ALBEDOS - 2));
-    crate::fit::kernel_report::fit_kernels(
-        &kernels,
-        &model,
-        &cache.join(format!("metamodel_ext_{key}_report")),
-        meta.all.k,
-        degree,
-    )?;
     let loaded = MetaModelFile::load(&model)?;
     let done = Extension {
         missing,
         albedos,
-        paths: doc.paths,
+        paths,
         model,
         kernels,
-        cached: false,
-        wall_s: t0.elapsed().as_secs_f64(),
+        cached,
+        wall_s: if cached {
+            0.0
+        } else {
+            t0.elapsed().as_secs_f64()
+        },
     };
     Ok((done, loaded))
 }

@@ -511,13 +511,7 @@ static PHI_TABLE: std::sync::LazyLock<Vec<(f64, f64)>> = std::sync::LazyLock::ne
 /// (Φc(6.5) = 4e-11). A few nanoseconds against ~20 for `erfc`.
 #[inline]
 pub fn fast_phi(z: f64) -> f64 {
-    phi_hermite(PHI_TABLE.as_slice(), z)
-}
-
-/// [`fast_phi`] on a table fetched once by the caller (the lazy table's
-/// initialisation check stays out of loops over many edges).
-#[inline(always)]
-fn phi_hermite(t: &[(f64, f64)], z: f64) -> f64 {
+    let t = PHI_TABLE.as_slice();
     if z.is_nan() || z <= -PHI_RANGE {
         return 0.0;
     }
@@ -535,8 +529,8 @@ fn phi_hermite(t: &[(f64, f64)], z: f64) -> f64 {
         + (x3 - x2) * h * d1
 }
 
-/// [`phi_hermite`] in four lanes (the same table and formula; the table
-/// reads stay scalar).
+/// [`fast_phi`] in four lanes on a table fetched once by the caller (the
+/// same formula, bitwise; the table reads stay scalar).
 #[inline(always)]
 fn phi_hermite4(t: &[(f64, f64)], z: f64x4) -> f64x4 {
     let zc = z
