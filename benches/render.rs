@@ -102,8 +102,9 @@ criterion_main!(benches);
 /// tally) against the homogeneous scalar walk (`simulate_scalar`, at the
 /// reference's albedos) under the same collimated disk light, all on one
 /// thread: a constant albedo 0.9, where only the machinery differs; the
-/// `stripes` albedo; a density ramp (τ = 0.05 MFP) with regular and with
-/// delta tracking; and both together.
+/// `stripes` albedo; a density ramp (τ = 0.05 MFP) on the majorant grid the
+/// reference picks, on its extremes (regular and delta tracking) and on
+/// cells of 2 … 256 texels; and albedo stripes and ramp together.
 fn walks(c: &mut Criterion) {
     use criterion::Throughput;
     use svkernel::forward::medium::{Medium, Source};
@@ -172,9 +173,31 @@ fn walks(c: &mut Criterion) {
         (&stripes, "stripes", "stripes"),
     ] {
         configs.push((format!("reference_{alone}"), albedo, None, None));
-        for (t, how) in [(Tracking::Regular, "regular"), (Tracking::Delta, "delta")] {
+        // The majorant grid the reference picks for the ramp (`None`), then
+        // regular and delta tracking (cells of one texel, one cell).
+        let trackings = [
+            (None, "grid".to_string()),
+            (Some(Tracking::REGULAR), "regular".to_string()),
+            (Some(Tracking::DELTA), "delta".to_string()),
+        ];
+        // With the constant albedo, every cell size between (the data that
+        // calibrates `reference::STEP_IN_CROSSINGS`).
+        let cells = (1..9).map(|k| {
+            (
+                Some(Tracking {
+                    cell_texels: 1 << k,
+                }),
+                format!("cells{}", 1 << k),
+            )
+        });
+        let cells: Vec<_> = if albedo == &constant {
+            cells.collect()
+        } else {
+            Vec::new()
+        };
+        for (t, how) in trackings.into_iter().chain(cells) {
             let name = format!("reference_{with_ramp}_density_ramp_{how}");
-            configs.push((name, albedo, Some(&ramp), Some(t)));
+            configs.push((name, albedo, Some(&ramp), t));
         }
     }
     for (name, albedo, density, tracking) in configs {
@@ -192,10 +215,43 @@ fn walks(c: &mut Criterion) {
         )
         .expect("reference");
         if let Some(t) = tracking {
-            r.tracking = t;
+            r.set_tracking(t);
         }
-        g.throughput(Throughput::Elements(r.chunk(0).events));
+        let events = r.chunk(0).events;
+        g.throughput(Throughput::Elements(events));
         g.bench_function(&name, |b| b.iter(|| black_box(r.chunk(0))));
+        if name == "reference_stripes" {
+            // Per-path work (launch, entry Fresnel, tally) makes events per
+            // second depend on the path length, and the stripes' paths are
+            // short (most end in an α = 0.3 stripe): their homogeneous
+            // counterpart is the albedo whose paths are as long (bisection on
+            // events per path, fixed streams).
+            let per_path = |a: f64| {
+                let m = Medium::new(a, 0.3, 1.5, 1.0, None).expect("medium");
+                simulate_scalar(&m, &source, &bins, 1_000_000, 1, 0, paths).events as f64
+                    / paths as f64
+            };
+            let target = events as f64 / paths as f64;
+            let (mut lo, mut hi) = (0.0, 1.0);
+            for _ in 0..20 {
+                let mid = 0.5 * (lo + hi);
+                if per_path(mid) < target {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            let medium = Medium::new(0.5 * (lo + hi), 0.3, 1.5, 1.0, None).expect("medium");
+            println!(
+                "stripes: {target:.3} events per path; homogeneous equivalent α = {:.4}",
+                medium.alpha
+            );
+            let run = || simulate_scalar(&medium, &source, &bins, 1_000_000, 1, 0, paths);
+            g.throughput(Throughput::Elements(run().events));
+            g.bench_function("homogeneous_scalar_stripes_equivalent", |b| {
+                b.iter(|| black_box(run()))
+            });
+        }
     }
     g.finish();
 }

@@ -417,17 +417,27 @@ fn null_collisions_do_not_bias_the_walk() {
     );
 }
 
-/// Regular tracking through a 1 × 1 unit-density map is bitwise the plain walk.
+/// The grid walk with a constant density in one cell (a 1 × 1 map of ρ = 1;
+/// a 5 × 3 map of ρ = 2) is the plain walk at that density, vertex by
+/// vertex. (Smaller cells split flights at their faces, which changes the
+/// last bits of the flight length.)
 #[test]
-fn tracked_walk_with_unit_density_is_the_plain_walk() {
-    use svkernel::forward::walk::{UniformAlbedo, walk_tracked};
-    let medium = Medium::new(0.9, 0.3, 1.5, 1.0, None).unwrap();
+fn grid_walk_with_constant_density_is_the_plain_walk() {
+    use svkernel::forward::maps::{DensityMap, MajorantGrid};
+    use svkernel::forward::walk::{UniformAlbedo, walk_grid};
     let albedo = UniformAlbedo(threshold_u32(0.9));
-    let density = TexelMap::new(1, 1, 1.0, vec![1.0]).unwrap();
-    assert_same_walks(
-        &|s, r, v| walk_general(&medium, &albedo, 10_000, s, r, |p, _| v.push(p)),
-        &|s, r, v| walk_tracked(&medium, &albedo, &density, 10_000, s, r, |p, _| v.push(p)),
-    );
+    for (rho, map, cells) in [
+        (1.0, TexelMap::new(1, 1, 1.0, vec![1.0]), 1),
+        (2.0, TexelMap::new(5, 3, 0.5, vec![2.0; 15]), 5),
+    ] {
+        let medium = Medium::new(0.9, 0.3, 1.5, rho, None).unwrap();
+        let grid = MajorantGrid::new(&DensityMap::new(map.unwrap()).unwrap(), cells);
+        assert!(grid.is_exact());
+        assert_same_walks(
+            &|s, r, v| walk_general(&medium, &albedo, 10_000, s, r, |p, _| v.push(p)),
+            &|s, r, v| walk_grid(&medium, &albedo, &grid, 10_000, s, r, |p, _| v.push(p)),
+        );
+    }
 }
 
 /// Regular tracking and delta tracking are two exact samplers of the same
@@ -435,8 +445,8 @@ fn tracked_walk_with_unit_density_is_the_plain_walk() {
 /// 0.5 MFP) their exit probability and mean exit radius agree within 4σ.
 #[test]
 fn tracked_and_delta_walks_agree_on_a_density_checker() {
-    use svkernel::forward::maps::DensityMap;
-    use svkernel::forward::walk::{UniformAlbedo, walk_delta, walk_tracked};
+    use svkernel::forward::maps::{DensityMap, MajorantGrid};
+    use svkernel::forward::walk::{UniformAlbedo, walk_delta, walk_grid};
     let medium = Medium::new(0.9, 0.3, 1.5, 1.0, None).unwrap();
     let albedo = UniformAlbedo(threshold_u32(0.9));
     let n_side = 16;
@@ -451,12 +461,13 @@ fn tracked_and_delta_walks_agree_on_a_density_checker() {
         .collect();
     let map = TexelMap::new(n_side, n_side, 0.5, values).unwrap();
     let delta_map = DensityMap::new(map.clone()).unwrap();
+    let regular = MajorantGrid::new(&delta_map, 1);
     let n = 200_000u64;
     let source = Source::Collimated { radius: 1.0 };
     let stats = |tracked: bool, seed: u64| {
         exit_stats(n, seed, &source, |s, rng| {
             if tracked {
-                walk_tracked(&medium, &albedo, &map, 100_000, s, rng, |_, _| {}).0
+                walk_grid(&medium, &albedo, &regular, 100_000, s, rng, |_, _| {}).0
             } else {
                 walk_delta(&medium, &albedo, &delta_map, 100_000, s, rng, |_, _| {}).0
             }
@@ -472,4 +483,50 @@ fn tracked_and_delta_walks_agree_on_a_density_checker() {
         (m1 - m2).abs() < 4.0 * f1.hypot(f2),
         "mean r {m1} ± {f1} vs {m2} ± {f2}"
     );
+}
+
+/// Majorant grids of every cell size sample the same heterogeneous walk as
+/// regular tracking: over a density checker (ρ = 0.25 | 4, texels of
+/// 0.5 MFP) under a smooth ramp, cells of 2 (majorant 4 in every cell), 3
+/// (cells straddling texels) and 16 texels (one cell, delta tracking) give
+/// the exit probability and mean exit radius of regular tracking within 4σ.
+#[test]
+fn grid_walks_of_any_cell_size_agree_with_regular_tracking() {
+    use svkernel::forward::maps::{DensityMap, MajorantGrid};
+    use svkernel::forward::walk::{UniformAlbedo, walk_grid};
+    let medium = Medium::new(0.9, 0.3, 1.5, 1.0, None).unwrap();
+    let albedo = UniformAlbedo(threshold_u32(0.9));
+    let n_side = 16;
+    let values = (0..n_side * n_side)
+        .map(|k| {
+            let ramp = 1.0 + (k % n_side) as f64 / n_side as f64;
+            ramp * if (k / n_side + k % n_side) % 2 == 0 {
+                0.25
+            } else {
+                4.0
+            }
+        })
+        .collect();
+    let map = TexelMap::new(n_side, n_side, 0.5, values).unwrap();
+    let density = DensityMap::new(map.clone()).unwrap();
+    let n = 150_000u64;
+    let source = Source::Collimated { radius: 1.0 };
+    let regular = MajorantGrid::new(&density, 1);
+    let (p0, e0, m0, f0) = exit_stats(n, 1, &source, |s, rng| {
+        walk_grid(&medium, &albedo, &regular, 100_000, s, rng, |_, _| {}).0
+    });
+    for (cell, seed) in [(2, 2), (3, 3), (16, 4)] {
+        let grid = MajorantGrid::new(&density, cell);
+        let (p, e, m, f) = exit_stats(n, seed, &source, |s, rng| {
+            walk_grid(&medium, &albedo, &grid, 100_000, s, rng, |_, _| {}).0
+        });
+        assert!(
+            (p0 - p).abs() < 4.0 * e0.hypot(e),
+            "cell {cell}: R_d {p0} ± {e0} vs {p} ± {e}"
+        );
+        assert!(
+            (m0 - m).abs() < 4.0 * f0.hypot(f),
+            "cell {cell}: mean r {m0} ± {f0} vs {m} ± {f}"
+        );
+    }
 }

@@ -28,7 +28,7 @@
 //! every result reports; for α < 1 it is at most α^max_events.
 
 use super::fresnel::{fresnel_dielectric, r_specular, refract_cos};
-use super::maps::TexelMap;
+use super::maps::{MajorantGrid, TexelMap};
 use super::medium::{Medium, Source};
 use super::rng::{PathRng, threshold_u32, unit_f64, unit_open0_f64};
 use super::sampling::{
@@ -366,46 +366,56 @@ pub fn walk_delta<A: AlbedoField, D: DensityField>(
 /// (exact) tracking: from (x, y) along the horizontal part (w_x, w_y) of a
 /// unit direction, the distance s at which the optical depth ∫ρ ds reaches
 /// `depth`, crossing texel columns one by one (ρ is constant along z within
-/// a column, so only the vertical texel faces matter). Returns `(s, true)`,
-/// or `(s_max, false)` if the flight reaches `s_max` (the wall) first.
-/// Cost ∝ texel faces crossed; the edge texels extend to infinity.
+/// a column, so only the vertical texel faces matter); (i, j) is the texel
+/// (row, column) of (x, y) ([`TexelMap::texel_of`]). Returns
+/// `Some((s, ρ))` with the density of the texel where the depth runs out, or
+/// `None` if the flight reaches `s_max` (the wall) first. Cost ∝ texel faces
+/// crossed (face distances from one reciprocal of w_x and w_y per flight);
+/// the edge texels extend to infinity.
 #[inline]
 pub fn track_flight(
     map: &TexelMap,
+    (i, j): (usize, usize),
     (x, y): (f64, f64),
     (wx, wy): (f64, f64),
     depth: f64,
     s_max: f64,
-) -> (f64, bool) {
+) -> Option<(f64, f64)> {
     let (nx, ny, tau) = (map.nx, map.ny, map.texel);
+    if nx == 1 && ny == 1 {
+        // No faces: the loop below in one step, without its set-up.
+        let rho = map.values[0];
+        return (rho * s_max >= depth).then(|| (depth / rho, rho));
+    }
     let left = -0.5 * nx as f64 * tau;
     let top = 0.5 * ny as f64 * tau;
-    let (mut i, mut j) = map.texel_of(x, y);
+    let (inv_wx, inv_wy) = (1.0 / wx, 1.0 / wy);
+    let (mut i, mut j) = (i, j);
     let (mut s, mut remaining) = (0.0f64, depth);
     loop {
         let rho = map.values[i * nx + j];
         // Distance (from the start) to the next face in x and in y, if any.
         let sx = if wx > 0.0 && j + 1 < nx {
-            (left + (j + 1) as f64 * tau - x) / wx
+            (left + (j + 1) as f64 * tau - x) * inv_wx
         } else if wx < 0.0 && j >= 1 {
-            (left + j as f64 * tau - x) / wx
+            (left + j as f64 * tau - x) * inv_wx
         } else {
             f64::INFINITY
         };
         let sy = if wy > 0.0 && i >= 1 {
-            (top - i as f64 * tau - y) / wy
+            (top - i as f64 * tau - y) * inv_wy
         } else if wy < 0.0 && i + 1 < ny {
-            (top - (i + 1) as f64 * tau - y) / wy
+            (top - (i + 1) as f64 * tau - y) * inv_wy
         } else {
             f64::INFINITY
         };
         let next = sx.min(sy).min(s_max).max(s);
         let seg = next - s;
         if rho * seg >= remaining {
-            return (s + remaining / rho, true);
+            return Some((s + remaining / rho, rho));
         }
         if next >= s_max {
-            return (s_max, false);
+            return None;
         }
         remaining -= rho * seg;
         s = next;
@@ -417,19 +427,29 @@ pub fn track_flight(
     }
 }
 
-/// The walk through a heterogeneous medium with **exact** free flights
-/// ([`track_flight`], regular tracking through the texel columns of
-/// `density`): albedo from `albedo`, phase, η and slab thickness from
-/// `medium`. Every step draws (a, b, c) as in [`walk`]: optical depth
-/// −ln u_a, wall Fresnel or absorption and azimuth from b, HG from c. With a
-/// 1 × 1 map of ρ = 1 it is bitwise [`walk_general`] at unit density. Cost
-/// per flight ∝ the texel faces crossed, whatever the density contrast
-/// (delta tracking, [`walk_delta`], costs ρ_max/ρ null steps per real
-/// collision instead).
-pub fn walk_tracked<A: AlbedoField>(
+/// The walk through a heterogeneous medium tracked on a [`MajorantGrid`]:
+/// regular tracking through the grid's cells against their majorants
+/// ([`track_flight`] on the majorant map), delta tracking within a cell.
+///
+/// # Step protocol and unbiasedness
+/// Every step draws (a, b, c) as in [`walk`]: optical depth −ln u_a against
+/// the cell majorants; the tentative collision at x is real with probability
+/// p = ρ(x)/ρ_maj(x), decided by u_c < p, and then u_c/p (again uniform on
+/// [0, 1)) drives the HG sampling while b decides absorption and the azimuth;
+/// a null collision continues the flight with the next triple (memoryless
+/// exponential, exact for any ρ ≤ ρ_maj: Woodcock tracking with a piecewise
+/// constant majorant). A wall reached first reflects or leaves by b.
+/// With one cell per texel p = 1: plain regular (exact) tracking, whatever
+/// the density contrast; with one cell for the whole map, delta tracking
+/// against ρ_max. With a constant density in one cell it is
+/// [`walk_general`] at that density (the wall test rounds differently:
+/// ρ·d_wall ≥ depth instead of depth/ρ < d_wall; tested equal vertex by
+/// vertex on 20 000 paths). Null collisions are capped
+/// like [`walk_delta`]'s (64 × the event cap).
+pub fn walk_grid<A: AlbedoField>(
     medium: &Medium,
     albedo: &A,
-    density: &TexelMap,
+    grid: &MajorantGrid,
     max_events: u32,
     start: Launched,
     rng: &mut PathRng,
@@ -440,29 +460,46 @@ pub fn walk_tracked<A: AlbedoField>(
     let [mut x, mut y, mut z] = start.position;
     let mut w = start.direction;
     let mut n = 0u32;
+    let exact = grid.is_exact();
+    let mut steps = 0u64;
+    let max_steps = 64 * max_events as u64 + 1_000_000;
     loop {
+        steps += 1;
+        if steps > max_steps {
+            return (Fate::Truncated, n);
+        }
         let (a, b, c) = (rng.next_u32(), rng.next_u32(), rng.next_u32());
         let depth = -unit_open0_f64(a).ln();
         let to_wall = wall_distance(z, &w, bottom);
-        let (s, collided) = track_flight(density, (x, y), (w[0], w[1]), depth, to_wall);
-        if !collided {
+        let cell = grid.cell_of(x, y);
+        let flight = track_flight(&grid.majorant, cell, (x, y), (w[0], w[1]), depth, to_wall);
+        let Some((s, rho_maj)) = flight else {
             let hit = hit_wall(&mut x, &mut y, &mut z, &mut w, to_wall, bottom, b, inv_eta);
             match hit {
                 Wall::Left(fate) => return (fate, n),
                 _ => continue,
             }
-        }
+        };
         x += w[0] * s;
         y += w[1] * s;
         z += w[2] * s;
-        let p = [x, y, z];
+        let uc = unit_f64(c);
+        let u_hg = if exact {
+            uc
+        } else {
+            let p = grid.density_at(x, y) / rho_maj;
+            if uc >= p {
+                continue; // null collision
+            }
+            uc / p
+        };
         if let Some(end) = collide(
             albedo,
             medium.g,
-            p,
+            [x, y, z],
             &mut w,
             b,
-            unit_f64(c),
+            u_hg,
             &mut n,
             max_events,
             &mut visit,

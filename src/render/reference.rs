@@ -4,12 +4,14 @@
 //! # What is simulated
 //! Paths are launched from the scene's light disk (collimated normal beam or
 //! diffuse, [`crate::forward::walk::launch`]) and walked through the albedo
-//! and density maps with exact free flights, by regular tracking through the
-//! texel columns ([`crate::forward::walk::walk_tracked`]: a density contrast
-//! of 1e6 costs nothing extra) or by delta tracking against ρ_max
-//! ([`crate::forward::walk::walk_delta`]: the texel size costs nothing),
-//! whichever [`Tracking::for_density`] expects to be cheaper for the map;
-//! both are unbiased and use the step protocol of every walk (tested to
+//! and density maps with exact free flights
+//! ([`crate::forward::walk::walk_grid`]): regular tracking through the cells
+//! of a majorant grid and delta tracking within them. One texel per cell is
+//! plain regular tracking (a density contrast of 1e6 costs nothing extra),
+//! one cell for the map plain delta tracking against ρ_max (the texel size
+//! costs nothing); [`Tracking::for_density`] picks the cell size it expects
+//! to be cheapest for the map. Every cell size is unbiased and uses the step
+//! protocol of every walk (tested to
 //! agree pixel by pixel). Channel c of path p uses stream (seed, p) for
 //! every c (common random numbers across channels).
 //!
@@ -37,12 +39,12 @@ use super::estimator::{Image, View};
 use super::scene::{LightKind, Observable};
 use crate::error::{Error, Result};
 use crate::forward::fresnel::fresnel_dielectric;
-use crate::forward::maps::{AlbedoMap, DensityMap, TexelMap};
+use crate::forward::maps::{AlbedoMap, DensityMap, MajorantGrid, TexelMap};
 use crate::forward::medium::{Medium, Source};
 use crate::forward::rng::PathRng;
 use crate::forward::runner::{Tally, chunk_paths};
 use crate::forward::sampling::hg_pdf;
-use crate::forward::walk::{DensityField, Fate, entry_weight, launch, walk_delta, walk_tracked};
+use crate::forward::walk::{Fate, entry_weight, launch, walk_grid};
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
 
@@ -115,48 +117,72 @@ impl Tally for ReferenceTally {
     }
 }
 
-/// How the reference samples free flights through the density map; both are
-/// exact (unbiased) and use one step protocol, and with a constant density
-/// both are bitwise the homogeneous walk.
+/// How the reference samples free flights through the density map: on a
+/// [`MajorantGrid`] of square cells of `cell_texels` texels (regular
+/// tracking through the cells, delta tracking within; exact for every cell
+/// size, tested to agree pixel by pixel). One texel per cell is regular
+/// tracking, [`Tracking::DELTA`] one cell for the whole map (delta tracking
+/// against ρ_max), which [`Tracking::for_density`] picks for a constant
+/// density: then the walk is the homogeneous one (no nulls, no faces).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum Tracking {
-    /// Regular tracking ([`walk_tracked`]): a flight crosses every texel
-    /// column on its way, ≈ 1/(ρ̄τ) faces per flight; indifferent to the
-    /// density contrast.
-    Regular,
-    /// Delta tracking ([`walk_delta`]) against ρ_max: ρ_max/ρ̄ steps per real
-    /// collision; indifferent to the texel size.
-    Delta,
+pub struct Tracking {
+    /// Cell edge in texels (clamped to the map: any value ≥ max(nx, ny) is
+    /// one cell).
+    pub cell_texels: usize,
 }
 
-/// Cost of one delta-tracking step in texel crossings of regular tracking
-/// (each step draws three random numbers and reads the map; a crossing is a
-/// few comparisons). Measured with `cargo bench --bench render -- walk` on
-/// α = 0.9 with a density ramp 0.5…4 (τ = 0.05 MFP): ≈ 19 ns per crossing
-/// (8.9 per collision) and ≈ 90 ns per null step (0.78 per collision)
-/// over the homogeneous reference's 125 ns per event, a ratio of ≈ 4.6.
-pub const DELTA_STEP_IN_CROSSINGS: f64 = 4.5;
+/// Cost of one tracking step (a tentative collision: three random numbers,
+/// a logarithm, a map read, the collision itself) in cell-face crossings of
+/// [`crate::forward::walk::track_flight`] (a few comparisons and a
+/// multiply-add each), and the extra set-up of a flight on a grid of more
+/// than one cell (its first cell, the face distances). Fitted to the
+/// reference walk on α = 0.9 with the density ramp 0.5…4 (τ = 0.05 MFP,
+/// 320² texels) at cells of 1, 2, 4, …, 256 and 320 texels (`cargo bench
+/// --bench render -- walk/reference_a0.9_density_ramp`): ≈ 8.5 ns per
+/// crossing, ≈ 68 ns per step, ≈ 25 ns per grid set-up.
+pub const STEP_IN_CROSSINGS: f64 = 8.0;
+pub const GRID_SETUP_IN_CROSSINGS: f64 = 3.0;
 
 impl Tracking {
-    /// The cheaper tracking for `density` (expected work per real
-    /// collision): regular tracking costs 1 + 1/(ρ̄τ) (the mean free path
-    /// 1/ρ̄ over texels of size τ, the flight's projection on the surface
-    /// crossing ≈ its length in texel faces of x and y together), delta
-    /// tracking ρ_max/ρ̄ steps of [`DELTA_STEP_IN_CROSSINGS`] each; ρ̄ is the
-    /// map's mean. A constant density (1×1 map) needs no choice: both are
-    /// the homogeneous walk; regular is returned.
+    /// Regular tracking through the texels (no null collisions).
+    pub const REGULAR: Tracking = Tracking { cell_texels: 1 };
+    /// Delta tracking against the map's largest density (no crossings).
+    pub const DELTA: Tracking = Tracking {
+        cell_texels: usize::MAX,
+    };
+
+    /// The cheapest cell size for `density` among 1, 2, 4, … and the whole
+    /// map, by the expected work per real collision:
+    /// ([`STEP_IN_CROSSINGS`] + [`GRID_SETUP_IN_CROSSINGS`])·n_steps + n_cross
+    /// (the set-up only when the grid has more than one cell), with n_steps =
+    /// [`MajorantGrid::steps_per_collision`] and n_cross = 1/(ρ̄Mτ) the face
+    /// crossings along the mean free path 1/ρ̄ (its surface projection
+    /// crosses ≈ its length in faces of x and y together); ρ̄ the map's mean.
     pub fn for_density(density: &DensityMap) -> Tracking {
         let m = &density.map;
-        if m.values.len() == 1 {
-            return Tracking::Regular;
+        let n = m.nx.max(m.ny);
+        if m.values.iter().all(|&v| v == m.values[0]) {
+            return Tracking::DELTA; // one cell, no null collisions
         }
         let mean = m.values.iter().sum::<f64>() / m.values.len() as f64;
-        let regular = 1.0 + 1.0 / (mean * m.texel);
-        let delta = density.majorant() / mean * DELTA_STEP_IN_CROSSINGS;
-        if delta < regular {
-            Tracking::Delta
-        } else {
-            Tracking::Regular
+        let mut best = (f64::INFINITY, Tracking::DELTA);
+        let mut cell = 1usize;
+        loop {
+            let grid = MajorantGrid::new(density, cell);
+            let steps = grid.steps_per_collision();
+            let cost = if grid.majorant.values.len() == 1 {
+                STEP_IN_CROSSINGS * steps
+            } else {
+                (STEP_IN_CROSSINGS + GRID_SETUP_IN_CROSSINGS) * steps
+                    + 1.0 / (mean * cell as f64 * m.texel)
+            };
+            if cost < best.0 {
+                best = (cost, Tracking { cell_texels: cell });
+            }
+            if cell >= n {
+                return best.1;
+            }
+            cell *= 2;
         }
     }
 }
@@ -165,9 +191,9 @@ impl Tracking {
 pub struct Reference {
     pub medium: Medium,
     pub albedo: Vec<AlbedoMap>,
-    pub density: DensityMap,
-    /// Chosen by [`Tracking::for_density`]; may be overridden (benchmarks).
-    pub tracking: Tracking,
+    /// The density map with its majorant grid for [`Reference::tracking`].
+    grid: MajorantGrid,
+    tracking: Tracking,
     pub source: Source,
     pub view: View,
     pub observable: Observable,
@@ -215,13 +241,25 @@ impl Reference {
             medium,
             albedo,
             tracking: Tracking::for_density(&density),
-            density,
+            grid: MajorantGrid::new(&density, Tracking::for_density(&density).cell_texels),
             source,
             view,
             observable,
             seed,
             paths,
         })
+    }
+
+    /// The tracking in use (cells of the majorant grid).
+    pub fn tracking(&self) -> Tracking {
+        self.tracking
+    }
+
+    /// Tracks on cells of `tracking.cell_texels` texels instead (same
+    /// result in distribution; benchmarks and tests).
+    pub fn set_tracking(&mut self, tracking: Tracking) {
+        self.grid = MajorantGrid::new(&self.grid.density, tracking.cell_texels);
+        self.tracking = tracking;
     }
 
     /// A key identifying this simulation (for checkpoints and merges).
@@ -232,7 +270,7 @@ impl Reference {
             "paths": self.paths,
             "resolution": self.view.resolution,
             "observable": format!("{:?}", self.observable),
-            "tracking": format!("{:?}", self.tracking),
+            "tracking_cell_texels": self.grid.cell_texels,
         })
     }
 
@@ -265,33 +303,22 @@ impl Reference {
                 };
                 contrib.clear();
                 let view = &self.view;
-                let density = &self.density;
+                let density = &self.grid.density;
                 let visit = |v: [f64; 3], w: [f64; 3]| {
                     if radiance && let Some((i, j)) = view.pixel_of(v[0], v[1]) {
                         let tr = (-density.map.at(v[0], v[1]) * v[2].abs()).exp();
                         contrib.push((i * n + j, hg_pdf(g, w[2]) * tr * t_normal));
                     }
                 };
-                let (fate, events) = match self.tracking {
-                    Tracking::Regular => walk_tracked(
-                        &self.medium,
-                        albedo,
-                        &density.map,
-                        MAX_EVENTS,
-                        start,
-                        &mut rng,
-                        visit,
-                    ),
-                    Tracking::Delta => walk_delta(
-                        &self.medium,
-                        albedo,
-                        density,
-                        MAX_EVENTS,
-                        start,
-                        &mut rng,
-                        visit,
-                    ),
-                };
+                let (fate, events) = walk_grid(
+                    &self.medium,
+                    albedo,
+                    &self.grid,
+                    MAX_EVENTS,
+                    start,
+                    &mut rng,
+                    visit,
+                );
                 t.events += events as u64;
                 match fate {
                     Fate::Exit { x, y } => match view.pixel_of(x, y) {
@@ -362,25 +389,47 @@ mod tests {
     #[test]
     fn tracking_follows_the_cost_model() {
         let pick = |m: TexelMap| Tracking::for_density(&DensityMap::new(m).unwrap());
-        // The canonical density ramp on fine texels: delta (ρ_max/ρ̄ = 1.8
-        // steps against ≈ 9 crossings).
-        assert_eq!(pick(ramp(160, 0.05, 0.5, 4.0)), Tracking::Delta);
-        // A contrast of 1e6: regular, whatever the texel size.
-        assert_eq!(pick(ramp(160, 0.05, 1e-3, 1e3)), Tracking::Regular);
+        // The canonical density ramp on fine texels: a grid between the
+        // extremes (regular ≈ 9 crossings per collision, delta ρ_max/ρ̄ = 1.8
+        // steps; cells of a few texels keep both low).
+        let t = pick(ramp(160, 0.05, 0.5, 4.0));
+        assert!((2..160).contains(&t.cell_texels), "{t:?}");
         // Coarse texels (one crossing per several flights): regular.
-        assert_eq!(pick(ramp(16, 2.0, 0.5, 4.0)), Tracking::Regular);
-        // A constant density needs no tracking.
+        assert_eq!(pick(ramp(16, 2.0, 0.5, 4.0)), Tracking::REGULAR);
+        // A checker of 1e-3 | 1e3 on fine texels: every cell of two or more
+        // texels has the majorant 1e3, doubling the steps; regular tracking
+        // crosses 1/(ρ̄τ) ≈ 0.04 faces per collision.
+        let checker = (0..64 * 64)
+            .map(|k| {
+                if (k / 64 + k % 64) % 2 == 0 {
+                    1e-3
+                } else {
+                    1e3
+                }
+            })
+            .collect();
         assert_eq!(
-            pick(TexelMap::new(1, 1, 0.05, vec![2.0]).unwrap()),
-            Tracking::Regular
+            pick(TexelMap::new(64, 64, 0.05, checker).unwrap()),
+            Tracking::REGULAR
         );
+        // A ramp of smooth, low density on very fine texels: one cell.
+        assert_eq!(pick(ramp(64, 0.001, 1.0, 1.1)).cell_texels, 64);
+        // A constant density is one exact cell: the homogeneous walk.
+        for m in [
+            TexelMap::new(1, 1, 0.05, vec![2.0]).unwrap(),
+            TexelMap::new(5, 3, 0.05, vec![2.0; 15]).unwrap(),
+        ] {
+            let t = pick(m.clone());
+            assert_eq!(t, Tracking::DELTA);
+            assert!(MajorantGrid::new(&DensityMap::new(m).unwrap(), t.cell_texels).is_exact());
+        }
     }
 
-    /// Both trackings sample the same transport: every pixel's exit count
-    /// agrees within the two runs' binomial noise (independent streams), and
-    /// so do the totals.
+    /// Regular tracking, delta tracking and a majorant grid between sample
+    /// the same transport: every pixel's exit count agrees within the runs'
+    /// binomial noise (independent streams), and so do the totals.
     #[test]
-    fn delta_and_regular_tracking_agree() {
+    fn every_tracking_agrees_pixel_by_pixel() {
         let albedo = TexelMap::new(
             16,
             16,
@@ -411,7 +460,7 @@ mod tests {
                 1_000_000,
             )
             .unwrap();
-            r.tracking = tracking;
+            r.set_tracking(tracking);
             let (lo, hi) = crate::forward::runner::chunk_range(r.paths, None);
             let mut t = r.empty();
             for c in lo..hi {
@@ -419,28 +468,31 @@ mod tests {
             }
             t
         };
-        let (a, b) = (run(Tracking::Regular, 1), run(Tracking::Delta, 2));
+        let a = run(Tracking::REGULAR, 1);
         let n = a.paths as f64;
         let z = |x: u64, y: u64| {
             let (p, q) = (x as f64 / n, y as f64 / n);
             (p - q) / ((p * (1.0 - p) + q * (1.0 - q)) / n).sqrt().max(1e-12)
         };
-        let worst = a
-            .exits
-            .iter()
-            .zip(&b.exits)
-            .map(|(x, y)| z(*x, *y).abs())
-            .fold(0.0, f64::max);
-        println!(
-            "exits {} vs {}, absorbed {} vs {}, worst pixel z = {worst:.2}",
-            a.exits.iter().sum::<u64>(),
-            b.exits.iter().sum::<u64>(),
-            a.absorbed,
-            b.absorbed
-        );
-        assert!(worst < 4.5, "worst pixel z = {worst:.2}");
         let total = |t: &ReferenceTally| t.exits.iter().sum::<u64>() + t.outside;
-        assert!(z(total(&a), total(&b)).abs() < 4.0);
-        assert!(z(a.absorbed, b.absorbed).abs() < 4.0);
+        for (tracking, seed) in [(Tracking::DELTA, 2), (Tracking { cell_texels: 4 }, 3)] {
+            let b = run(tracking, seed);
+            let worst = a
+                .exits
+                .iter()
+                .zip(&b.exits)
+                .map(|(x, y)| z(*x, *y).abs())
+                .fold(0.0, f64::max);
+            println!(
+                "{tracking:?}: exits {} vs {}, absorbed {} vs {}, worst pixel z = {worst:.2}",
+                a.exits.iter().sum::<u64>(),
+                b.exits.iter().sum::<u64>(),
+                a.absorbed,
+                b.absorbed
+            );
+            assert!(worst < 4.5, "{tracking:?}: worst pixel z = {worst:.2}");
+            assert!(z(total(&a), total(&b)).abs() < 4.0);
+            assert!(z(a.absorbed, b.absorbed).abs() < 4.0);
+        }
     }
 }
