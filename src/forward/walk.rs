@@ -487,11 +487,12 @@ pub fn walk_grid<A: AlbedoField>(
         let u_hg = if exact {
             uc
         } else {
-            let p = grid.density_at(x, y) / rho_maj;
-            if uc >= p {
+            // Real iff u_c < p = ρ/ρ_maj, tested without the division.
+            let rho = grid.density_at(x, y);
+            if uc * rho_maj >= rho {
                 continue; // null collision
             }
-            uc / p
+            uc * rho_maj / rho
         };
         if let Some(end) = collide(
             albedo,
