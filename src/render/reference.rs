@@ -141,6 +141,8 @@ pub struct Tracking {
 /// --bench render -- walk/reference_a0.9_density_ramp`): ≈ 8.5 ns per
 /// crossing, ≈ 68 ns per step, ≈ 25 ns per grid set-up.
 pub const STEP_IN_CROSSINGS: f64 = 8.0;
+/// The set-up of a flight on a multi-cell grid, in crossings (see
+/// [`STEP_IN_CROSSINGS`]).
 pub const GRID_SETUP_IN_CROSSINGS: f64 = 3.0;
 
 impl Tracking {
@@ -237,11 +239,12 @@ impl Reference {
         if paths == 0 {
             return Err(Error::param("--paths", 0, ">= 1"));
         }
+        let tracking = Tracking::for_density(&density);
         Ok(Reference {
             medium,
             albedo,
-            tracking: Tracking::for_density(&density),
-            grid: MajorantGrid::new(&density, Tracking::for_density(&density).cell_texels),
+            grid: MajorantGrid::new(&density, tracking.cell_texels),
+            tracking,
             source,
             view,
             observable,
