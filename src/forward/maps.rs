@@ -163,36 +163,7 @@ impl MajorantGrid {
     pub fn new(density: &DensityMap, cell_texels: usize) -> Self {
         let m = &density.map;
         let cell = cell_texels.clamp(1, m.nx.max(m.ny));
-        let majorant = if cell == 1 {
-            m.clone()
-        } else if cell >= m.nx.max(m.ny) {
-            TexelMap {
-                nx: 1,
-                ny: 1,
-                texel: cell as f64 * m.texel,
-                values: vec![density.majorant()],
-            }
-        } else {
-            let (cols, rows) = (cell_ranges(m.nx, cell), cell_ranges(m.ny, cell));
-            let mut values = Vec::with_capacity(cols.len() * rows.len());
-            for &(i0, i1) in &rows {
-                for &(j0, j1) in &cols {
-                    let mut v = 0.0f64;
-                    for i in i0..=i1 {
-                        for &r in &m.values[i * m.nx + j0..=i * m.nx + j1] {
-                            v = v.max(r);
-                        }
-                    }
-                    values.push(v);
-                }
-            }
-            TexelMap {
-                nx: cols.len(),
-                ny: rows.len(),
-                texel: cell as f64 * m.texel,
-                values,
-            }
-        };
+        let majorant = Self::majorants(density, cell);
         let constant = m.values.iter().all(|&v| v == m.values[0]);
         MajorantGrid {
             density: density.clone(),
@@ -201,6 +172,43 @@ impl MajorantGrid {
             majorant,
             cell_texels: cell,
             exact: cell == 1 || constant,
+        }
+    }
+
+    /// The majorant map alone (what [`MajorantGrid::new`] builds, without
+    /// copying the density): cells of `cell_texels` texels, clamped as there.
+    pub fn majorants(density: &DensityMap, cell_texels: usize) -> TexelMap {
+        let m = &density.map;
+        let cell = cell_texels.clamp(1, m.nx.max(m.ny));
+        if cell == 1 {
+            return m.clone();
+        }
+        if cell == m.nx.max(m.ny) {
+            return TexelMap {
+                nx: 1,
+                ny: 1,
+                texel: cell as f64 * m.texel,
+                values: vec![density.majorant()],
+            };
+        }
+        let (cols, rows) = (cell_ranges(m.nx, cell), cell_ranges(m.ny, cell));
+        let mut values = Vec::with_capacity(cols.len() * rows.len());
+        for &(i0, i1) in &rows {
+            for &(j0, j1) in &cols {
+                let mut v = 0.0f64;
+                for i in i0..=i1 {
+                    for &r in &m.values[i * m.nx + j0..=i * m.nx + j1] {
+                        v = v.max(r);
+                    }
+                }
+                values.push(v);
+            }
+        }
+        TexelMap {
+            nx: cols.len(),
+            ny: rows.len(),
+            texel: cell as f64 * m.texel,
+            values,
         }
     }
 
@@ -226,25 +234,31 @@ impl MajorantGrid {
         self.exact
     }
 
-    /// Tentative collisions per real one, Σ ρ_maj/Σ ρ over the texels (the
-    /// cell of each texel's centre): the null-collision overhead of the grid
-    /// for paths spread evenly over the texture.
+    /// Tentative collisions per real one ([`steps_per_collision`]).
     pub fn steps_per_collision(&self) -> f64 {
-        let m = &self.density.map;
-        let (x0, y0) = (-0.5 * m.nx as f64 * m.texel, 0.5 * m.ny as f64 * m.texel);
-        let (mut maj, mut rho) = (0.0, 0.0);
-        for i in 0..m.ny {
-            for j in 0..m.nx {
-                let (x, y) = (
-                    x0 + (j as f64 + 0.5) * m.texel,
-                    y0 - (i as f64 + 0.5) * m.texel,
-                );
-                maj += self.majorant.at(x, y);
-                rho += m.values[i * m.nx + j];
-            }
-        }
-        maj / rho
+        steps_per_collision(&self.density.map, &self.majorant)
     }
+}
+
+/// Tentative collisions per real one on the majorant map `majorant` of
+/// `density`, Σ ρ_maj/Σ ρ over the texels (the cell of each texel's
+/// centre): the null-collision overhead for paths spread evenly over the
+/// texture.
+pub fn steps_per_collision(density: &TexelMap, majorant: &TexelMap) -> f64 {
+    let m = density;
+    let (x0, y0) = (-0.5 * m.nx as f64 * m.texel, 0.5 * m.ny as f64 * m.texel);
+    let (mut maj, mut rho) = (0.0, 0.0);
+    for i in 0..m.ny {
+        for j in 0..m.nx {
+            let (x, y) = (
+                x0 + (j as f64 + 0.5) * m.texel,
+                y0 - (i as f64 + 0.5) * m.texel,
+            );
+            maj += majorant.at(x, y);
+            rho += m.values[i * m.nx + j];
+        }
+    }
+    maj / rho
 }
 
 /// [`TexelMap::texel_of`] with the reciprocal of τ precomputed (for the

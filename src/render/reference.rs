@@ -39,7 +39,7 @@ use super::estimator::{Image, View};
 use super::scene::{LightKind, Observable};
 use crate::error::{Error, Result};
 use crate::forward::fresnel::fresnel_dielectric;
-use crate::forward::maps::{AlbedoMap, DensityMap, MajorantGrid, TexelMap};
+use crate::forward::maps::{AlbedoMap, DensityMap, MajorantGrid, TexelMap, steps_per_collision};
 use crate::forward::medium::{Medium, Source};
 use crate::forward::rng::PathRng;
 use crate::forward::runner::{Tally, chunk_paths};
@@ -157,7 +157,7 @@ impl Tracking {
     /// map, by the expected work per real collision:
     /// ([`STEP_IN_CROSSINGS`] + [`GRID_SETUP_IN_CROSSINGS`])·n_steps + n_cross
     /// (the set-up only when the grid has more than one cell), with n_steps =
-    /// [`MajorantGrid::steps_per_collision`] and n_cross = 1/(ρ̄Mτ) the face
+    /// [`steps_per_collision`] and n_cross = 1/(ρ̄Mτ) the face
     /// crossings along the mean free path 1/ρ̄ (its surface projection
     /// crosses ≈ its length in faces of x and y together); ρ̄ the map's mean.
     pub fn for_density(density: &DensityMap) -> Tracking {
@@ -170,9 +170,9 @@ impl Tracking {
         let mut best = (f64::INFINITY, Tracking::DELTA);
         let mut cell = 1usize;
         loop {
-            let grid = MajorantGrid::new(density, cell);
-            let steps = grid.steps_per_collision();
-            let cost = if grid.majorant.values.len() == 1 {
+            let majorant = MajorantGrid::majorants(density, cell);
+            let steps = steps_per_collision(m, &majorant);
+            let cost = if majorant.values.len() == 1 {
                 STEP_IN_CROSSINGS * steps
             } else {
                 (STEP_IN_CROSSINGS + GRID_SETUP_IN_CROSSINGS) * steps
