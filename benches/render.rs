@@ -127,16 +127,14 @@ fn walks(c: &mut Criterion) {
     // The homogeneous walk at the reference's albedos: events per second
     // depend on the path length (per-path launch and tally), so the
     // heterogeneous reference is compared with the albedos it contains.
-    for alpha in [0.9, 0.3, 0.95] {
+    let homogeneous = |alpha: f64| {
         let medium = Medium::new(alpha, 0.3, 1.5, 1.0, None).expect("medium");
-        let events = simulate_scalar(&medium, &source, &bins, 1_000_000, 1, 0, paths).events;
-        g.throughput(Throughput::Elements(events));
+        simulate_scalar(&medium, &source, &bins, 1_000_000, 1, 0, paths)
+    };
+    for alpha in [0.9, 0.3, 0.95] {
+        g.throughput(Throughput::Elements(homogeneous(alpha).events));
         g.bench_function(format!("homogeneous_scalar_a{alpha}"), |b| {
-            b.iter(|| {
-                black_box(simulate_scalar(
-                    &medium, &source, &bins, 1_000_000, 1, 0, paths,
-                ))
-            })
+            b.iter(|| black_box(homogeneous(black_box(alpha))))
         });
     }
     let n = 320usize;
@@ -168,9 +166,9 @@ fn walks(c: &mut Criterion) {
     // Albedo stripes and the density ramp separately, then together; with a
     // density map both trackings (the reference picks one per scene).
     let mut configs = Vec::new();
-    for (albedo, alone, with_ramp) in [
-        (&constant, "constant_a0.9", "a0.9"),
-        (&stripes, "stripes", "stripes"),
+    for (albedo, alone, with_ramp, sweep) in [
+        (&constant, "constant_a0.9", "a0.9", true),
+        (&stripes, "stripes", "stripes", false),
     ] {
         configs.push((format!("reference_{alone}"), albedo, None, None));
         // The majorant grid the reference picks for the ramp (`None`), then
@@ -190,12 +188,7 @@ fn walks(c: &mut Criterion) {
                 format!("cells{}", 1 << k),
             )
         });
-        let cells: Vec<_> = if albedo == &constant {
-            cells.collect()
-        } else {
-            Vec::new()
-        };
-        for (t, how) in trackings.into_iter().chain(cells) {
+        for (t, how) in trackings.into_iter().chain(cells.filter(|_| sweep)) {
             let name = format!("reference_{with_ramp}_density_ramp_{how}");
             configs.push((name, albedo, Some(&ramp), t));
         }
@@ -226,11 +219,7 @@ fn walks(c: &mut Criterion) {
             // short (most end in an α = 0.3 stripe): their homogeneous
             // counterpart is the albedo whose paths are as long (bisection on
             // events per path, fixed streams).
-            let per_path = |a: f64| {
-                let m = Medium::new(a, 0.3, 1.5, 1.0, None).expect("medium");
-                simulate_scalar(&m, &source, &bins, 1_000_000, 1, 0, paths).events as f64
-                    / paths as f64
-            };
+            let per_path = |a: f64| homogeneous(a).events as f64 / paths as f64;
             let target = events as f64 / paths as f64;
             let (mut lo, mut hi) = (0.0, 1.0);
             for _ in 0..20 {
@@ -241,15 +230,11 @@ fn walks(c: &mut Criterion) {
                     hi = mid;
                 }
             }
-            let medium = Medium::new(0.5 * (lo + hi), 0.3, 1.5, 1.0, None).expect("medium");
-            println!(
-                "stripes: {target:.3} events per path; homogeneous equivalent α = {:.4}",
-                medium.alpha
-            );
-            let run = || simulate_scalar(&medium, &source, &bins, 1_000_000, 1, 0, paths);
-            g.throughput(Throughput::Elements(run().events));
+            let alpha = 0.5 * (lo + hi);
+            println!("stripes: {target:.3} events per path; homogeneous equivalent α = {alpha:.4}");
+            g.throughput(Throughput::Elements(homogeneous(alpha).events));
             g.bench_function("homogeneous_scalar_stripes_equivalent", |b| {
-                b.iter(|| black_box(run()))
+                b.iter(|| black_box(homogeneous(black_box(alpha))))
             });
         }
     }

@@ -321,10 +321,8 @@ pub fn walk_delta<A: AlbedoField, D: DensityField>(
     let [mut x, mut y, mut z] = start.position;
     let mut w = start.direction;
     let mut n = 0u32;
-    // Null collisions are bounded too (a path in vanishing density would
-    // otherwise take ~σ̄/ρ steps per real collision): 64× the event cap.
     let mut steps = 0u64;
-    let max_steps = 64 * max_events as u64 + 1_000_000;
+    let max_steps = max_tracking_steps(max_events);
     loop {
         steps += 1;
         if steps > max_steps {
@@ -360,6 +358,15 @@ pub fn walk_delta<A: AlbedoField, D: DensityField>(
             return (end, n);
         }
     }
+}
+
+/// The step cap of the walks with null collisions ([`walk_delta`],
+/// [`walk_grid`]): a path in vanishing density would otherwise take ≈ ρ_maj/ρ
+/// steps per real collision, so steps (real, null or wall) are bounded by 64×
+/// the event cap (plus 10⁶); a path that reaches it is truncated.
+#[inline]
+fn max_tracking_steps(max_events: u32) -> u64 {
+    64 * max_events as u64 + 1_000_000
 }
 
 /// Free flight through a piecewise-constant 2.5D density map by regular
@@ -444,7 +451,7 @@ pub fn track_flight(
 /// against ρ_max. With a constant density in one cell it is
 /// [`walk_general`] at that density (the wall test rounds differently:
 /// ρ·d_wall ≥ depth instead of depth/ρ < d_wall; tested equal vertex by
-/// vertex on 20 000 paths). Null collisions are capped
+/// vertex on 20 000 paths). Steps are capped
 /// like [`walk_delta`]'s (64 × the event cap).
 pub fn walk_grid<A: AlbedoField>(
     medium: &Medium,
@@ -462,7 +469,7 @@ pub fn walk_grid<A: AlbedoField>(
     let mut n = 0u32;
     let exact = grid.is_exact();
     let mut steps = 0u64;
-    let max_steps = 64 * max_events as u64 + 1_000_000;
+    let max_steps = max_tracking_steps(max_events);
     loop {
         steps += 1;
         if steps > max_steps {

@@ -193,9 +193,9 @@ impl Tracking {
 pub struct Reference {
     pub medium: Medium,
     pub albedo: Vec<AlbedoMap>,
-    /// The density map with its majorant grid for [`Reference::tracking`].
+    /// The density map with its majorant grid (cells chosen by
+    /// [`Tracking::for_density`], or [`Reference::set_tracking`]).
     grid: MajorantGrid,
-    tracking: Tracking,
     pub source: Source,
     pub view: View,
     pub observable: Observable,
@@ -244,7 +244,6 @@ impl Reference {
             medium,
             albedo,
             grid: MajorantGrid::new(&density, tracking.cell_texels),
-            tracking,
             source,
             view,
             observable,
@@ -253,16 +252,10 @@ impl Reference {
         })
     }
 
-    /// The tracking in use (cells of the majorant grid).
-    pub fn tracking(&self) -> Tracking {
-        self.tracking
-    }
-
     /// Tracks on cells of `tracking.cell_texels` texels instead (same
     /// result in distribution; benchmarks and tests).
     pub fn set_tracking(&mut self, tracking: Tracking) {
         self.grid = MajorantGrid::new(&self.grid.density, tracking.cell_texels);
-        self.tracking = tracking;
     }
 
     /// A key identifying this simulation (for checkpoints and merges).
