@@ -2,7 +2,9 @@
 //! (issue 6 target: `learned` < 200 ns and flat in d; `line` and `ellipse`
 //! grow with d), on the `stripes` texture (τ = 0.05 MFP) with a density
 //! ramp, so that every aggregate is density-scaled. Pairs at distance d in
-//! 64 directions from spread-out entry points. `cargo bench --bench render`.
+//! 64 directions from spread-out entry points. The `pyramid` group times the
+//! building block: one paired Gaussian query (G ∗ ρ, G ∗ ρα) per regime of σ.
+//! `cargo bench --bench render`.
 
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use std::hint::black_box;
@@ -95,7 +97,61 @@ fn svbssrdf(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, svbssrdf, walks);
+/// One paired pyramid query (`integrate_pair`, as the kernel methods make
+/// per component) on the density ramp and ρ·stripes of the `svbssrdf` bench
+/// (320² texels, τ = 0.05 MFP), at 64 spread-out centres, per regime of σ:
+/// the exact window below a texel (σ = 0.02τ, 0.5τ, 0.9τ), pyramid levels
+/// (σ = 3τ, 30τ). Also on a 32² map of the same texel size, where every
+/// pyramid node stays in the caches: what is left is arithmetic.
+fn pyramid(c: &mut Criterion) {
+    use svkernel::render::pyramid::GaussianPyramid;
+    let tau = 0.05;
+    let maps = |n: usize| {
+        let rho: Vec<f64> = (0..n * n)
+            .map(|k| 0.5 + 3.5 * (k % n) as f64 / (n - 1) as f64)
+            .collect();
+        let rho_alpha = rho
+            .iter()
+            .enumerate()
+            .map(|(k, r)| {
+                r * if ((k % n) / 10).is_multiple_of(2) {
+                    0.3
+                } else {
+                    0.95
+                }
+            })
+            .collect();
+        let build =
+            |v| GaussianPyramid::new(&TexelMap::new(n, n, tau, v).expect("map")).expect("pyramid");
+        (build(rho), build(rho_alpha))
+    };
+    let mut g = c.benchmark_group("pyramid");
+    for n in [320usize, 32] {
+        let (rho, rho_alpha) = maps(n);
+        let half = 0.45 * n as f64 * tau;
+        let centres: Vec<[f64; 2]> = (0..64)
+            .map(|k| {
+                let k = k as f64;
+                [half * (k * 0.37).sin(), half * (k * 0.61).cos()]
+            })
+            .collect();
+        for sigma_texels in [0.02, 0.5, 0.9, 3.0, 30.0] {
+            let sigma = sigma_texels * tau;
+            let id = BenchmarkId::new(format!("pair_{n}x{n}"), format!("{sigma_texels}tau"));
+            g.bench_with_input(id, &centres, |b, centres| {
+                let mut i = 0;
+                b.iter(|| {
+                    let mu = centres[i & 63];
+                    i += 1;
+                    black_box(rho.integrate_pair(&rho_alpha, black_box(mu), black_box(sigma)))
+                })
+            });
+        }
+    }
+    g.finish();
+}
+
+criterion_group!(benches, svbssrdf, pyramid, walks);
 criterion_main!(benches);
 
 /// Scattering events per second of the reference walk (texel maps, image
