@@ -1159,11 +1159,14 @@ mod tests {
             assert!(p.integrate(mu, sigma).is_nan(), "{mu:?} {sigma}");
             assert!(exact(&map, mu, sigma).is_nan(), "{mu:?} {sigma}");
         }
-        map.values[3] = f64::NAN;
-        assert!(matches!(
-            GaussianPyramid::new(&map),
-            Err(Error::Param { .. })
-        ));
+        // Beyond the f32 nodes' safe range, and NaN.
+        for bad in [1e31, -1e31, f64::NAN] {
+            map.values[3] = bad;
+            assert!(matches!(
+                GaussianPyramid::new(&map),
+                Err(Error::Param { .. })
+            ));
+        }
         map.values.pop();
         assert!(matches!(
             GaussianPyramid::new(&map),
