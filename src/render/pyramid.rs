@@ -273,13 +273,15 @@ impl GaussianPyramid {
         let sigma_top = TOP_FACTOR * (half[0] + half[1]);
         let n_levels = ((sigma_top / sigma0).ln() / r.ln()).ceil().max(1.0) as usize + 1;
 
-        // Level 0: exact erf convolution of the texels.
-        let mut levels = Vec::with_capacity(n_levels);
-        let l0 = Level::grid(sigma0, half, &cfg, 0);
-        let sx = texel_stencil(&map, false, &l0);
-        let sy = texel_stencil(&map, true, &l0);
-        // Each level is built in f64 from the previous one in f64, then
-        // stored in f32: the rounding does not accumulate over the levels.
+        // The grids first (a level's offset is the size of those below), so
+        // that the node array is allocated once.
+        let mut levels: Vec<Level> = Vec::with_capacity(n_levels);
+        let mut total = 0;
+        for l in 0..n_levels {
+            let lv = Level::grid(sigma0 * r.powi(l as i32), half, &cfg, total);
+            total += lv.sx * lv.sy;
+            levels.push(lv);
+        }
         let (lo, hi) = map
             .values
             .iter()
@@ -288,29 +290,30 @@ impl GaussianPyramid {
             });
         let base = 0.5 * (lo + hi);
         let store = |v: &f64| (v - base) as f32;
-        let mut level = convolve(&map.values, map.ny, map.nx, &sx, &sy);
-        let mut values: Vec<f32> = level.iter().map(store).collect();
-        levels.push(l0);
-
+        let mut values: Vec<f32> = Vec::with_capacity(total);
+        // Each level is built in f64 from the previous one in f64, then
+        // stored in f32: the rounding does not accumulate over the levels.
+        // Level 0: exact erf convolution of the texels.
+        let (mut level, mut next, mut tmp) = (Vec::new(), Vec::new(), Vec::new());
+        let sx = texel_stencil(&map, false, &levels[0]);
+        let sy = texel_stencil(&map, true, &levels[0]);
+        convolve_into(
+            &map.values,
+            (map.ny, map.nx),
+            (&sx, &sy),
+            &mut tmp,
+            &mut level,
+        );
+        values.extend(level.iter().map(store));
         // Level ℓ+1 = level ℓ blurred by σ_res (trapezoid rule, edge-clamped).
-        for l in 1..n_levels {
-            let prev = levels[l - 1].clone();
-            let sigma = sigma0 * r.powi(l as i32);
-            let next = Level::grid(sigma, half, &cfg, values.len());
-            let s_res = (sigma * sigma - prev.sigma * prev.sigma).sqrt();
-            let sx = node_stencil(
-                (prev.x0, prev.h, prev.sx),
-                (next.x0, next.h, next.sx),
-                s_res,
-            );
-            let sy = node_stencil(
-                (prev.y0, prev.h, prev.sy),
-                (next.y0, next.h, next.sy),
-                s_res,
-            );
-            level = convolve(&level, prev.sy, prev.sx, &sx, &sy);
-            values.extend(level.iter().map(store));
-            levels.push(next);
+        for pair in levels.windows(2) {
+            let (prev, lv) = (&pair[0], &pair[1]);
+            let s_res = (lv.sigma * lv.sigma - prev.sigma * prev.sigma).sqrt();
+            let sx = node_stencil((prev.x0, prev.h, prev.sx), (lv.x0, lv.h, lv.sx), s_res);
+            let sy = node_stencil((prev.y0, prev.h, prev.sy), (lv.y0, lv.h, lv.sy), s_res);
+            convolve_into(&level, (prev.sy, prev.sx), (&sx, &sy), &mut tmp, &mut next);
+            values.extend(next.iter().map(store));
+            std::mem::swap(&mut level, &mut next);
         }
         Ok(GaussianPyramid {
             map,
@@ -746,18 +749,28 @@ fn node_stencil(src: (f64, f64, usize), dst: (f64, f64, usize), s: f64) -> Stenc
 /// `sx`, then rows through `sy`; the result is `sy.len() × sx.len()`. Rows
 /// are split over rayon's threads; every output value is the same sum in
 /// the same order whatever the thread count (bitwise deterministic).
-fn convolve(src: &[f64], rows: usize, cols: usize, sx: &Stencil, sy: &Stencil) -> Vec<f64> {
+fn convolve_into(
+    src: &[f64],
+    (rows, cols): (usize, usize),
+    (sx, sy): (&Stencil, &Stencil),
+    tmp: &mut Vec<f64>,
+    out: &mut Vec<f64>,
+) {
     use rayon::prelude::*;
     let (ox, oy) = (sx.start.len(), sy.start.len());
-    let mut tmp = vec![0.0; rows * ox];
+    // (The buffers are reused from level to level: no allocation, and no
+    // unmapping of freed pages, per level.)
+    tmp.clear();
+    tmp.resize(rows * ox, 0.0);
     tmp.par_chunks_mut(ox).enumerate().for_each(|(r, out)| {
         let row = &src[r * cols..(r + 1) * cols];
         for (k, t) in out.iter_mut().enumerate() {
             let w = &sx.w[sx.off[k]..sx.off[k] + sx.len[k]];
-            *t = row[sx.start[k]..].iter().zip(w).map(|(a, b)| a * b).sum();
+            *t = dot(&row[sx.start[k]..sx.start[k] + w.len()], w);
         }
     });
-    let mut out = vec![0.0; oy * ox];
+    out.clear();
+    out.resize(oy * ox, 0.0);
     out.par_chunks_mut(ox).enumerate().for_each(|(k, dst)| {
         let w = &sy.w[sy.off[k]..sy.off[k] + sy.len[k]];
         for (t, wt) in w.iter().enumerate() {
@@ -767,7 +780,24 @@ fn convolve(src: &[f64], rows: usize, cols: usize, sx: &Stencil, sy: &Stencil) -
             }
         }
     });
-    out
+}
+
+/// Σ a_k·b_k in four interleaved partial sums (f64x4 lanes, then the tail):
+/// four independent addition chains instead of one. A fixed order, so the
+/// result does not depend on the thread that computes it.
+#[inline]
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    let (a4, b4) = (a.chunks_exact(4), b.chunks_exact(4));
+    let tail: f64 = a4
+        .remainder()
+        .iter()
+        .zip(b4.remainder())
+        .map(|(x, y)| x * y)
+        .sum();
+    let acc = a4.zip(b4).fold(f64x4::ZERO, |acc, (x, y)| {
+        acc + f64x4::from([x[0], x[1], x[2], x[3]]) * f64x4::from([y[0], y[1], y[2], y[3]])
+    });
+    acc.reduce_add() + tail
 }
 
 #[cfg(test)]
@@ -1104,6 +1134,26 @@ mod tests {
         }
         assert_eq!(MAX_READS, 100);
         println!("most reads: {most} (bound {MAX_READS})");
+    }
+
+    #[test]
+    fn the_build_does_not_depend_on_the_thread_count() {
+        let map = noise_map(61, 47, 0.25, 13);
+        let build = |threads| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| GaussianPyramid::new(&map).unwrap())
+        };
+        let (one, four) = (build(1), build(4));
+        assert_eq!(one.values.len(), four.values.len());
+        assert!(
+            one.values
+                .iter()
+                .zip(&four.values)
+                .all(|(a, b)| a.to_bits() == b.to_bits())
+        );
     }
 
     #[test]
