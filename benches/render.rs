@@ -15,6 +15,32 @@ use svkernel::metamodel::basis::BasisModel;
 use svkernel::metamodel::meta::MetaModelFile;
 use svkernel::render::svbssrdf::{BasisTable, Density, Method, Scratch, SvBssrdf, Variant};
 
+/// Texel size of every bench texture (MFP).
+const TAU: f64 = 0.05;
+
+/// n × n texels of [`TAU`]: stripes of albedo 0.3 / 0.95 across x, 10
+/// texels (0.5 MFP) wide, the first one 0.3.
+fn stripes(n: usize) -> TexelMap {
+    let values = (0..n * n)
+        .map(|k| {
+            if ((k % n) / 10).is_multiple_of(2) {
+                0.3
+            } else {
+                0.95
+            }
+        })
+        .collect();
+    TexelMap::new(n, n, TAU, values).expect("map")
+}
+
+/// n × n texels of [`TAU`]: density ramp 0.5 … 4 across x.
+fn density_ramp(n: usize) -> TexelMap {
+    let values = (0..n * n)
+        .map(|k| 0.5 + 3.5 * (k % n) as f64 / (n - 1) as f64)
+        .collect();
+    TexelMap::new(n, n, TAU, values).expect("map")
+}
+
 fn svbssrdf(c: &mut Criterion) {
     let basis = Arc::new(BasisTable::new(
         &BasisModel::load(Path::new("data/profiles/basis.json")).expect("shipped basis"),
@@ -24,32 +50,7 @@ fn svbssrdf(c: &mut Criterion) {
     );
     // 320 × 320 texels of 0.05 MFP: stripes 0.3 / 0.95 of width 0.5 MFP,
     // density ramp 0.5 … 4 across x.
-    let (n, tau) = (320usize, 0.05);
-    let x_of = |j: usize| -0.5 * n as f64 * tau + (j as f64 + 0.5) * tau;
-    let albedo = TexelMap::new(
-        n,
-        n,
-        tau,
-        (0..n * n)
-            .map(|k| {
-                if ((x_of(k % n) / 0.5).floor() as i64) % 2 == 0 {
-                    0.3
-                } else {
-                    0.95
-                }
-            })
-            .collect(),
-    )
-    .expect("map");
-    let density = TexelMap::new(
-        n,
-        n,
-        tau,
-        (0..n * n)
-            .map(|k| 0.5 + 3.5 * (k % n) as f64 / (n - 1) as f64)
-            .collect(),
-    )
-    .expect("map");
+    let (albedo, density) = (stripes(320), density_ramp(320));
     let mut g = c.benchmark_group("svbssrdf");
     // Every method with the default variant, and `learned` with point
     // albedos for the local terms (one kernel instead of two).
@@ -105,30 +106,24 @@ fn svbssrdf(c: &mut Criterion) {
 /// pyramid node stays in the caches: what is left is arithmetic.
 fn pyramid(c: &mut Criterion) {
     use svkernel::render::pyramid::GaussianPyramid;
-    let tau = 0.05;
     let maps = |n: usize| {
-        let rho: Vec<f64> = (0..n * n)
-            .map(|k| 0.5 + 3.5 * (k % n) as f64 / (n - 1) as f64)
-            .collect();
-        let rho_alpha = rho
-            .iter()
-            .enumerate()
-            .map(|(k, r)| {
-                r * if ((k % n) / 10).is_multiple_of(2) {
-                    0.3
-                } else {
-                    0.95
-                }
-            })
-            .collect();
-        let build =
-            |v| GaussianPyramid::new(&TexelMap::new(n, n, tau, v).expect("map")).expect("pyramid");
-        (build(rho), build(rho_alpha))
+        let rho = density_ramp(n);
+        let rho_alpha = TexelMap {
+            values: rho
+                .values
+                .iter()
+                .zip(&stripes(n).values)
+                .map(|(r, a)| r * a)
+                .collect(),
+            ..rho.clone()
+        };
+        let build = |m: &TexelMap| GaussianPyramid::new(m).expect("pyramid");
+        (build(&rho), build(&rho_alpha))
     };
     let mut g = c.benchmark_group("pyramid");
     for n in [320usize, 32] {
         let (rho, rho_alpha) = maps(n);
-        let half = 0.45 * n as f64 * tau;
+        let half = 0.45 * n as f64 * TAU;
         let centres: Vec<[f64; 2]> = (0..64)
             .map(|k| {
                 let k = k as f64;
@@ -136,7 +131,7 @@ fn pyramid(c: &mut Criterion) {
             })
             .collect();
         for sigma_texels in [0.02, 0.5, 0.9, 3.0, 30.0] {
-            let sigma = sigma_texels * tau;
+            let sigma = sigma_texels * TAU;
             let id = BenchmarkId::new(format!("pair_{n}x{n}"), format!("{sigma_texels}tau"));
             g.bench_with_input(id, &centres, |b, centres| {
                 let mut i = 0;
@@ -193,32 +188,8 @@ fn walks(c: &mut Criterion) {
             b.iter(|| black_box(homogeneous(black_box(alpha))))
         });
     }
-    let n = 320usize;
-    let stripes = TexelMap::new(
-        n,
-        n,
-        0.05,
-        (0..n * n)
-            .map(|k| {
-                if ((k % n) / 10).is_multiple_of(2) {
-                    0.3
-                } else {
-                    0.95
-                }
-            })
-            .collect(),
-    )
-    .expect("map");
-    let ramp = TexelMap::new(
-        n,
-        n,
-        0.05,
-        (0..n * n)
-            .map(|k| 0.5 + 3.5 * (k % n) as f64 / (n - 1) as f64)
-            .collect(),
-    )
-    .expect("map");
-    let constant = TexelMap::new(1, 1, 0.05, vec![0.9]).expect("map");
+    let (stripes, ramp) = (stripes(320), density_ramp(320));
+    let constant = TexelMap::new(1, 1, TAU, vec![0.9]).expect("map");
     // Albedo stripes and the density ramp separately, then together; with a
     // density map both trackings (the reference picks one per scene).
     let mut configs = Vec::new();

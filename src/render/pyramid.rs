@@ -760,8 +760,8 @@ fn convolve_into(
     use rayon::prelude::*;
     let (ox, oy) = (sx.start.len(), sy.start.len());
     // (The buffers are reused from level to level: no allocation, and no
-    // unmapping of freed pages, per level.)
-    tmp.clear();
+    // unmapping of freed pages, per level. `tmp` is overwritten entirely, so
+    // it is only resized; `out` accumulates, so it starts from zeros.)
     tmp.resize(rows * ox, 0.0);
     tmp.par_chunks_mut(ox).enumerate().for_each(|(r, out)| {
         let row = &src[r * cols..(r + 1) * cols];
