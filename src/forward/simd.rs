@@ -619,6 +619,7 @@ pub fn simulate_lanes(
     count: u64,
 ) -> ProfileTally {
     let mut tally = ProfileTally::new(bins);
+    let lookup = bins.lookup();
     let walk = Walk::new(medium, max_events);
     let mut feeder = Feeder {
         source,
@@ -668,7 +669,7 @@ pub fn simulate_lanes(
             } else {
                 Fate::Truncated
             };
-            record(&mut tally, bins, fate, ns[lane]);
+            record(&mut tally, &lookup, fate, ns[lane]);
             if let Some((start, rng)) = feeder.next(&mut tally) {
                 lanes.load(lane, &start, &rng);
             } else {

@@ -34,7 +34,7 @@ use super::rng::{PathRng, threshold_u32, unit_f64, unit_open0_f64};
 use super::sampling::{
     Vec3, rotate_direction, sample_cosine_cos_theta, sample_disk_concentric, sample_hg_cos,
 };
-use super::tally::{ProfileTally, RadialBins};
+use super::tally::{BinLookup, ProfileTally, RadialBins};
 use std::f64::consts::PI;
 
 /// A path inside the medium, right after entry.
@@ -47,36 +47,52 @@ pub struct Launched {
 /// Launches path from `source`: `None` if it is reflected specularly at the
 /// surface (sampled only for diffuse light; at normal incidence the constant
 /// entry transmittance is a weight, [`entry_weight`]).
+///
+/// Inline for the pencil beam (no draws): the lane-parallel walk launches a
+/// path whenever a lane ends, and an out-of-line call there spills every
+/// live SIMD register. The disk sources sample out of line.
+#[inline]
 pub fn launch(source: &Source, eta: f64, rng: &mut PathRng) -> Option<Launched> {
-    let down = [0.0, 0.0, -1.0];
     match *source {
         Source::Pencil => Some(Launched {
             position: [0.0; 3],
-            direction: down,
+            direction: DOWN,
         }),
-        Source::Collimated { radius } => {
-            let d = sample_disk_concentric([rng.uniform(), rng.uniform()]);
-            Some(Launched {
-                position: [radius * d[0], radius * d[1], 0.0],
-                direction: down,
-            })
-        }
-        Source::Diffuse { radius } => {
-            let d = sample_disk_concentric([rng.uniform(), rng.uniform()]);
-            let cos_o = sample_cosine_cos_theta(rng.uniform());
-            let phi = 2.0 * PI * rng.uniform();
-            if rng.uniform() < fresnel_dielectric(cos_o, eta) {
-                return None;
-            }
-            // Snell from outside (η_rel = η): never total internal reflection.
-            let cos_t = refract_cos(cos_o, eta).unwrap_or(0.0);
-            let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
-            Some(Launched {
-                position: [radius * d[0], radius * d[1], 0.0],
-                direction: [sin_t * phi.cos(), sin_t * phi.sin(), -cos_t],
-            })
-        }
+        _ => launch_disk(source, eta, rng),
     }
+}
+
+/// Straight into the medium.
+const DOWN: Vec3 = [0.0, 0.0, -1.0];
+
+/// [`launch`] from a disk source.
+#[inline(never)]
+fn launch_disk(source: &Source, eta: f64, rng: &mut PathRng) -> Option<Launched> {
+    let d = sample_disk_concentric([rng.uniform(), rng.uniform()]);
+    let position = match *source {
+        Source::Pencil => unreachable!("launch() handles the pencil beam"),
+        Source::Collimated { radius } | Source::Diffuse { radius } => {
+            [radius * d[0], radius * d[1], 0.0]
+        }
+    };
+    if let Source::Collimated { .. } = source {
+        return Some(Launched {
+            position,
+            direction: DOWN,
+        });
+    }
+    let cos_o = sample_cosine_cos_theta(rng.uniform());
+    let phi = 2.0 * PI * rng.uniform();
+    if rng.uniform() < fresnel_dielectric(cos_o, eta) {
+        return None;
+    }
+    // Snell from outside (η_rel = η): never total internal reflection.
+    let cos_t = refract_cos(cos_o, eta).unwrap_or(0.0);
+    let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
+    Some(Launched {
+        position,
+        direction: [sin_t * phi.cos(), sin_t * phi.sin(), -cos_t],
+    })
 }
 
 /// Power carried by each launched path, as a fraction of the incident power:
@@ -517,9 +533,10 @@ pub fn walk_grid<A: AlbedoField>(
     }
 }
 
-/// Adds one finished path to the tally.
+/// Adds one finished path to the tally (`bins`: the lookup of the tally's
+/// [`RadialBins`]).
 #[inline]
-pub fn record(tally: &mut ProfileTally, bins: &RadialBins, fate: Fate, events: u32) {
+pub fn record(tally: &mut ProfileTally, bins: &BinLookup, fate: Fate, events: u32) {
     tally.events += events as u64;
     match fate {
         Fate::Exit { x, y } => {
@@ -548,6 +565,7 @@ pub fn simulate_scalar(
     count: u64,
 ) -> ProfileTally {
     let mut tally = ProfileTally::new(bins);
+    let lookup = bins.lookup();
     for path in first..first + count {
         tally.paths += 1;
         let mut rng = PathRng::new(seed, path);
@@ -555,7 +573,7 @@ pub fn simulate_scalar(
             None => tally.specular += 1,
             Some(start) => {
                 let (fate, n) = walk(medium, max_events, start, &mut rng);
-                record(&mut tally, bins, fate, n);
+                record(&mut tally, &lookup, fate, n);
             }
         }
     }
