@@ -131,7 +131,7 @@ impl BinLookup {
     #[inline]
     pub fn index(&self, r: f64) -> usize {
         // Below t_1 = r_min, and NaN: the inner disk, as `index`.
-        if !(r >= self.thresholds[0]) {
+        if r.is_nan() || r < self.thresholds[0] {
             return 0;
         }
         let cell = ((r.to_bits() >> Self::SHIFT) - self.key0) as usize;
