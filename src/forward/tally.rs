@@ -87,7 +87,7 @@ impl RadialBins {
 /// evaluations of `index`). A lookup reads a table keyed by the top bits of
 /// r (exponent and [`Self::MANTISSA_BITS`] mantissa bits: cells finer than
 /// the bins) holding the count at the cell's lower end, then steps past the
-/// thresholds inside the cell (at most one for ≤ 90 rings per decade).
+/// thresholds inside the cell (at most one up to 148 rings per decade).
 ///
 /// Why: the logarithm was a libm call in the lane-parallel walk's refill
 /// loop, and around a call every live SIMD register is spilled (all are

@@ -58,29 +58,29 @@ pub fn launch(source: &Source, eta: f64, rng: &mut PathRng) -> Option<Launched> 
             position: [0.0; 3],
             direction: DOWN,
         }),
-        _ => launch_disk(source, eta, rng),
+        Source::Collimated { radius } => Some(Launched {
+            position: disk_point(radius, rng),
+            direction: DOWN,
+        }),
+        Source::Diffuse { radius } => launch_diffuse(radius, eta, rng),
     }
 }
 
 /// Straight into the medium.
 const DOWN: Vec3 = [0.0, 0.0, -1.0];
 
-/// [`launch`] from a disk source.
+/// A uniform point of the disk of `radius` on the surface (two draws).
 #[inline(never)]
-fn launch_disk(source: &Source, eta: f64, rng: &mut PathRng) -> Option<Launched> {
+fn disk_point(radius: f64, rng: &mut PathRng) -> Vec3 {
     let d = sample_disk_concentric([rng.uniform(), rng.uniform()]);
-    let position = match *source {
-        Source::Pencil => unreachable!("launch() handles the pencil beam"),
-        Source::Collimated { radius } | Source::Diffuse { radius } => {
-            [radius * d[0], radius * d[1], 0.0]
-        }
-    };
-    if let Source::Collimated { .. } = source {
-        return Some(Launched {
-            position,
-            direction: DOWN,
-        });
-    }
+    [radius * d[0], radius * d[1], 0.0]
+}
+
+/// [`launch`] from a diffuse disk: the point, a cosine-distributed outside
+/// direction, the Fresnel decision at entry, the refracted direction.
+#[inline(never)]
+fn launch_diffuse(radius: f64, eta: f64, rng: &mut PathRng) -> Option<Launched> {
+    let position = disk_point(radius, rng);
     let cos_o = sample_cosine_cos_theta(rng.uniform());
     let phi = 2.0 * PI * rng.uniform();
     if rng.uniform() < fresnel_dielectric(cos_o, eta) {
