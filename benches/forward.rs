@@ -13,7 +13,7 @@ use svkernel::forward::medium::{Medium, Source};
 use svkernel::forward::profile::{DEFAULT_MAX_EVENTS, Engine, ProfileConfig};
 use svkernel::forward::runner::CHUNK_PATHS;
 use svkernel::forward::simd::simulate_lanes;
-use svkernel::forward::tally::{ProfileTally, RadialBins};
+use svkernel::forward::tally::{BinLookup, ProfileTally, RadialBins};
 use svkernel::forward::walk::simulate_scalar;
 
 const SEED: u64 = 0x5EED;
@@ -35,10 +35,10 @@ fn config(alpha: f64, engine: Engine) -> ProfileConfig {
 }
 
 /// All chunks of `cfg` in parallel, merged in chunk order.
-fn all_threads(cfg: &ProfileConfig) -> ProfileTally {
+fn all_threads(cfg: &ProfileConfig, bins: &BinLookup) -> ProfileTally {
     let parts: Vec<ProfileTally> = (0..CHUNKS)
         .into_par_iter()
-        .map(|c| cfg.simulate_chunk(c))
+        .map(|c| cfg.simulate_chunk(c, bins))
         .collect();
     let mut total = ProfileTally::new(&cfg.bins);
     for p in &parts {
@@ -47,7 +47,7 @@ fn all_threads(cfg: &ProfileConfig) -> ProfileTally {
     total
 }
 
-fn one_thread(cfg: &ProfileConfig) -> ProfileTally {
+fn one_thread(cfg: &ProfileConfig, bins: &BinLookup) -> ProfileTally {
     let f = match cfg.engine {
         Engine::Scalar => simulate_scalar,
         Engine::Lanes => simulate_lanes,
@@ -55,7 +55,7 @@ fn one_thread(cfg: &ProfileConfig) -> ProfileTally {
     f(
         &cfg.medium,
         &cfg.source,
-        &cfg.bins,
+        bins,
         cfg.max_events,
         cfg.seed,
         0,
@@ -77,11 +77,13 @@ fn forward(c: &mut Criterion) {
             ("lanes_all_threads", Engine::Lanes, true),
         ] {
             let cfg = config(alpha, engine);
+            // The bins' lookup is built once per run, as `ProfileConfig::run` does.
+            let bins = cfg.bins.lookup();
             let run = |cfg: &ProfileConfig| {
                 if threads {
-                    all_threads(cfg)
+                    all_threads(cfg, &bins)
                 } else {
-                    one_thread(cfg)
+                    one_thread(cfg, &bins)
                 }
             };
             // Throughput in scattering events of this exact input.

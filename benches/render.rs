@@ -172,7 +172,7 @@ fn walks(c: &mut Criterion) {
         half_width: 4.0,
     };
     let source = Source::Collimated { radius: 1.0 };
-    let bins = RadialBins::default();
+    let bins = RadialBins::default().lookup();
     let mut g = c.benchmark_group("walk");
     g.sample_size(10);
     // The homogeneous walk at the reference's albedos: events per second

@@ -3,7 +3,7 @@
 
 use super::medium::{Medium, Source};
 use super::runner::{self, RunOptions, Shard, chunk_paths, chunk_range};
-use super::tally::{Estimate, Normalizer, ProfileTally, RadialBins};
+use super::tally::{BinLookup, Estimate, Normalizer, ProfileTally, RadialBins};
 use super::walk::{entry_weight, simulate_scalar};
 use crate::error::{Error, Result};
 use crate::provenance::Provenance;
@@ -70,14 +70,15 @@ impl ProfileConfig {
         Ok(())
     }
 
-    /// Tally of chunk `c`.
-    pub fn simulate_chunk(&self, c: u64) -> ProfileTally {
+    /// Tally of chunk `c`; `bins` is `self.bins.lookup()` (built once per
+    /// run by the caller).
+    pub fn simulate_chunk(&self, c: u64, bins: &BinLookup) -> ProfileTally {
         let (first, count) = chunk_paths(self.paths, c);
         match self.engine {
             Engine::Scalar => simulate_scalar(
                 &self.medium,
                 &self.source,
-                &self.bins,
+                bins,
                 self.max_events,
                 self.seed,
                 first,
@@ -86,7 +87,7 @@ impl ProfileConfig {
             Engine::Lanes => super::simd::simulate_lanes(
                 &self.medium,
                 &self.source,
-                &self.bins,
+                bins,
                 self.max_events,
                 self.seed,
                 first,
@@ -100,11 +101,12 @@ impl ProfileConfig {
         self.validate()?;
         let key = serde_json::json!({ "config": self, "shard": shard });
         let range = chunk_range(self.paths, shard);
+        let lookup = self.bins.lookup();
         let out = runner::run(
             &key,
             range,
             ProfileTally::new(&self.bins),
-            |c| self.simulate_chunk(c),
+            |c| self.simulate_chunk(c, &lookup),
             opts,
         )?;
         Ok((out.tally, out.wall_s))

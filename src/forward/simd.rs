@@ -55,7 +55,7 @@
 use super::medium::{Medium, Source};
 use super::rng::{PathRng, threshold_u32};
 use super::sampling::HG_ISOTROPIC_G;
-use super::tally::{ProfileTally, RadialBins};
+use super::tally::{BinLookup, ProfileTally};
 use super::walk::{Fate, Launched, launch, record};
 use std::f64::consts::{LN_2, PI};
 use wide::bytemuck::cast;
@@ -612,14 +612,13 @@ impl Feeder<'_> {
 pub fn simulate_lanes(
     medium: &Medium,
     source: &Source,
-    bins: &RadialBins,
+    bins: &BinLookup,
     max_events: u32,
     seed: u64,
     first: u64,
     count: u64,
 ) -> ProfileTally {
-    let mut tally = ProfileTally::new(bins);
-    let lookup = bins.lookup();
+    let mut tally = ProfileTally::new(bins.bins());
     let walk = Walk::new(medium, max_events);
     let mut feeder = Feeder {
         source,
@@ -669,7 +668,7 @@ pub fn simulate_lanes(
             } else {
                 Fate::Truncated
             };
-            record(&mut tally, &lookup, fate, ns[lane]);
+            record(&mut tally, bins, fate, ns[lane]);
             if let Some((start, rng)) = feeder.next(&mut tally) {
                 lanes.load(lane, &start, &rng);
             } else {
@@ -918,7 +917,7 @@ mod tests {
     /// Both engines on the same streams; totals within `Z_MC` combined
     /// binomial standard errors, radial bins by a two-sample χ².
     fn compare_engines(medium: Medium, source: Source, paths: u64, seed: u64) {
-        let bins = RadialBins::default();
+        let bins = crate::forward::tally::RadialBins::default().lookup();
         let max_events = 100_000;
         let s = simulate_scalar(&medium, &source, &bins, max_events, seed, 0, paths);
         let l = simulate_lanes(&medium, &source, &bins, max_events, seed, 0, paths);
@@ -1003,7 +1002,7 @@ mod tests {
 
     #[test]
     fn hard_cases_stay_sane() {
-        let bins = RadialBins::default();
+        let bins = crate::forward::tally::RadialBins::default().lookup();
         let max_events = 10_000;
         let paths = 64;
         for alpha in [0.0, 1e-9, 1.0 - 1e-9, 1.0] {
@@ -1052,7 +1051,7 @@ mod tests {
 
     #[test]
     fn short_and_odd_ranges() {
-        let bins = RadialBins::default();
+        let bins = crate::forward::tally::RadialBins::default().lookup();
         let medium = Medium::new(0.9, 0.3, 1.5, 1.0, None).unwrap();
         for source in [Source::Pencil, Source::Diffuse { radius: 1.0 }] {
             for (first, count) in [
@@ -1073,7 +1072,7 @@ mod tests {
         }
         assert_eq!(
             simulate_lanes(&medium, &Source::Pencil, &bins, 1000, 4, 0, 0),
-            ProfileTally::new(&bins)
+            ProfileTally::new(bins.bins())
         );
         // max_events = 0 truncates at the first scattering, as the scalar walk.
         let t = simulate_lanes(&medium, &Source::Pencil, &bins, 0, 4, 0, 1000);

@@ -69,7 +69,8 @@ impl RadialBins {
     }
 
     /// A precomputed form of [`Self::index`] for the walks' tally: the same
-    /// bin for every `r`, without a logarithm.
+    /// bin for every `r`, without a logarithm (≈ 40 µs to build: once per
+    /// run, not per chunk).
     pub fn lookup(&self) -> BinLookup {
         BinLookup::new(self)
     }
@@ -94,6 +95,7 @@ impl RadialBins {
 /// caller-saved): 10–15 % of the walk's time at α = 0.99.
 #[derive(Clone, Debug)]
 pub struct BinLookup {
+    bins: RadialBins,
     /// t_1, …, t_{len−1}.
     thresholds: Vec<f64>,
     /// Counts #{j : t_j ≤ lower end of cell c}.
@@ -121,10 +123,16 @@ impl BinLookup {
             })
             .collect();
         BinLookup {
+            bins: *bins,
             thresholds,
             table,
             key0,
         }
+    }
+
+    /// The bins it looks up.
+    pub fn bins(&self) -> &RadialBins {
+        &self.bins
     }
 
     /// [`RadialBins::index`]`(r)`, bitwise.

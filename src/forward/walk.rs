@@ -34,7 +34,7 @@ use super::rng::{PathRng, threshold_u32, unit_f64, unit_open0_f64};
 use super::sampling::{
     Vec3, rotate_direction, sample_cosine_cos_theta, sample_disk_concentric, sample_hg_cos,
 };
-use super::tally::{BinLookup, ProfileTally, RadialBins};
+use super::tally::{BinLookup, ProfileTally};
 use std::f64::consts::PI;
 
 /// A path inside the medium, right after entry.
@@ -558,14 +558,13 @@ pub fn record(tally: &mut ProfileTally, bins: &BinLookup, fate: Fate, events: u3
 pub fn simulate_scalar(
     medium: &Medium,
     source: &Source,
-    bins: &RadialBins,
+    bins: &BinLookup,
     max_events: u32,
     seed: u64,
     first: u64,
     count: u64,
 ) -> ProfileTally {
-    let mut tally = ProfileTally::new(bins);
-    let lookup = bins.lookup();
+    let mut tally = ProfileTally::new(bins.bins());
     for path in first..first + count {
         tally.paths += 1;
         let mut rng = PathRng::new(seed, path);
@@ -573,7 +572,7 @@ pub fn simulate_scalar(
             None => tally.specular += 1,
             Some(start) => {
                 let (fate, n) = walk(medium, max_events, start, &mut rng);
-                record(&mut tally, &lookup, fate, n);
+                record(&mut tally, bins, fate, n);
             }
         }
     }
