@@ -73,6 +73,7 @@ impl ProfileConfig {
     /// Tally of chunk `c`; `bins` is `self.bins.lookup()` (built once per
     /// run by the caller).
     pub fn simulate_chunk(&self, c: u64, bins: &BinLookup) -> ProfileTally {
+        assert_eq!(bins.bins(), &self.bins, "a lookup of other bins");
         let (first, count) = chunk_paths(self.paths, c);
         match self.engine {
             Engine::Scalar => simulate_scalar(
