@@ -695,6 +695,7 @@ mod tests {
     use super::*;
     use crate::forward::fresnel::fresnel_dielectric;
     use crate::forward::sampling::sample_hg_cos;
+    use crate::forward::tally::RadialBins;
     use crate::forward::walk::simulate_scalar;
     use crate::testing::*;
 
@@ -917,7 +918,7 @@ mod tests {
     /// Both engines on the same streams; totals within `Z_MC` combined
     /// binomial standard errors, radial bins by a two-sample χ².
     fn compare_engines(medium: Medium, source: Source, paths: u64, seed: u64) {
-        let bins = crate::forward::tally::RadialBins::default().lookup();
+        let bins = RadialBins::default().lookup();
         let max_events = 100_000;
         let s = simulate_scalar(&medium, &source, &bins, max_events, seed, 0, paths);
         let l = simulate_lanes(&medium, &source, &bins, max_events, seed, 0, paths);
@@ -1002,7 +1003,7 @@ mod tests {
 
     #[test]
     fn hard_cases_stay_sane() {
-        let bins = crate::forward::tally::RadialBins::default().lookup();
+        let bins = RadialBins::default().lookup();
         let max_events = 10_000;
         let paths = 64;
         for alpha in [0.0, 1e-9, 1.0 - 1e-9, 1.0] {
@@ -1051,7 +1052,7 @@ mod tests {
 
     #[test]
     fn short_and_odd_ranges() {
-        let bins = crate::forward::tally::RadialBins::default().lookup();
+        let bins = RadialBins::default().lookup();
         let medium = Medium::new(0.9, 0.3, 1.5, 1.0, None).unwrap();
         for source in [Source::Pencil, Source::Diffuse { radius: 1.0 }] {
             for (first, count) in [

@@ -142,11 +142,9 @@ impl BinLookup {
         if r.is_nan() || r < self.thresholds[0] {
             return 0;
         }
-        let cell = ((r.to_bits() >> Self::SHIFT) - self.key0) as usize;
-        let mut k = match self.table.get(cell) {
-            Some(&k) => k as usize,
-            None => self.table[self.table.len() - 1] as usize,
-        };
+        // Beyond the last cell (past t_{len−1}): start from the last cell.
+        let cell = (((r.to_bits() >> Self::SHIFT) - self.key0) as usize).min(self.table.len() - 1);
+        let mut k = self.table[cell] as usize;
         while k < self.thresholds.len() && self.thresholds[k] <= r {
             k += 1;
         }
