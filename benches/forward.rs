@@ -12,13 +12,9 @@ use std::time::Duration;
 use svkernel::forward::medium::{Medium, Source};
 use svkernel::forward::profile::{DEFAULT_MAX_EVENTS, Engine, ProfileConfig};
 use svkernel::forward::runner::CHUNK_PATHS;
-use svkernel::forward::simd::simulate_lanes;
 use svkernel::forward::tally::{BinLookup, ProfileTally, RadialBins};
-use svkernel::forward::walk::simulate_scalar;
 
 const SEED: u64 = 0x5EED;
-/// Paths of the single-thread benchmarks (one chunk).
-const PATHS_1: u64 = 1 << 14;
 /// Chunks of the all-threads benchmarks.
 const CHUNKS: u64 = 32;
 
@@ -47,20 +43,9 @@ fn all_threads(cfg: &ProfileConfig, bins: &BinLookup) -> ProfileTally {
     total
 }
 
+/// The first chunk ([`CHUNK_PATHS`] paths) on the calling thread.
 fn one_thread(cfg: &ProfileConfig, bins: &BinLookup) -> ProfileTally {
-    let f = match cfg.engine {
-        Engine::Scalar => simulate_scalar,
-        Engine::Lanes => simulate_lanes,
-    };
-    f(
-        &cfg.medium,
-        &cfg.source,
-        bins,
-        cfg.max_events,
-        cfg.seed,
-        0,
-        PATHS_1,
-    )
+    cfg.simulate_chunk(0, bins)
 }
 
 fn forward(c: &mut Criterion) {
