@@ -4,7 +4,9 @@
 //! ramp, so that every aggregate is density-scaled. Pairs at distance d in
 //! 64 directions from spread-out entry points. The `pyramid` group times the
 //! building block: one paired Gaussian query (G ∗ ρ, G ∗ ρα) per regime of σ.
-//! `cargo bench --bench render`.
+//! `cargo bench --bench render`; `SVKERNEL_BENCH_MODELS=a.json,b.json cargo
+//! bench --bench render -- svbssrdf_models` also times `learned` under those
+//! meta-models (e.g. the K = 1…5 refits of `tools/kernel_complexity.sh`).
 
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use std::hint::black_box;
@@ -41,13 +43,57 @@ fn density_ramp(n: usize) -> TexelMap {
     TexelMap::new(n, n, TAU, values).expect("map")
 }
 
+/// Pairs (x_i, x_e) at distance `d` in 64 directions (golden angle) from
+/// spread-out entry points.
+fn pairs_at(d: f64) -> Vec<([f64; 2], [f64; 2])> {
+    (0..64)
+        .map(|k| {
+            let phi = k as f64 * 2.399_963; // golden angle
+            let xi = [2.0 * (k as f64 * 0.37).sin(), 2.0 * (k as f64 * 0.61).cos()];
+            (xi, [xi[0] + d * phi.cos(), xi[1] + d * phi.sin()])
+        })
+        .collect()
+}
+
+/// Times `sv.eval` on channel 0 at the bench distances, as `name/d`.
+fn bench_distances(
+    g: &mut criterion::BenchmarkGroup<criterion::measurement::WallTime>,
+    name: &str,
+    sv: &SvBssrdf,
+) {
+    for d in [0.1, 1.0, 10.0, 50.0] {
+        g.bench_with_input(BenchmarkId::new(name, d), &pairs_at(d), |b, pairs| {
+            let mut scratch = Scratch::default();
+            let mut i = 0;
+            b.iter(|| {
+                let (xi, xe) = pairs[i & 63];
+                i += 1;
+                black_box(sv.eval(0, black_box(xi), black_box(xe), &mut scratch))
+            })
+        });
+    }
+}
+
+/// Meta-models besides the shipped one for the `svbssrdf_models` group:
+/// comma-separated paths in `SVKERNEL_BENCH_MODELS` (e.g. the refits of
+/// `tools/kernel_complexity.sh` at K = 1…5), none when unset.
+fn extra_models() -> Vec<String> {
+    std::env::var("SVKERNEL_BENCH_MODELS")
+        .map(|v| {
+            v.split(',')
+                .filter(|s| !s.is_empty())
+                .map(String::from)
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
 fn svbssrdf(c: &mut Criterion) {
     let basis = Arc::new(BasisTable::new(
         &BasisModel::load(Path::new("data/profiles/basis.json")).expect("shipped basis"),
     ));
-    let meta = Arc::new(
-        MetaModelFile::load(Path::new("data/profiles/metamodel.json")).expect("shipped meta-model"),
-    );
+    let shipped = "data/profiles/metamodel.json";
+    let meta = Arc::new(MetaModelFile::load(Path::new(shipped)).expect("shipped meta-model"));
     // 320 × 320 texels of 0.05 MFP: stripes 0.3 / 0.95 of width 0.5 MFP,
     // density ramp 0.5 … 4 across x.
     let (albedo, density) = (stripes(320), density_ramp(320));
@@ -76,24 +122,32 @@ fn svbssrdf(c: &mut Criterion) {
             Density::Map(density.clone()),
         )
         .expect("prepared");
-        for d in [0.1, 1.0, 10.0, 50.0] {
-            let pairs: Vec<([f64; 2], [f64; 2])> = (0..64)
-                .map(|k| {
-                    let phi = k as f64 * 2.399_963; // golden angle
-                    let xi = [2.0 * (k as f64 * 0.37).sin(), 2.0 * (k as f64 * 0.61).cos()];
-                    (xi, [xi[0] + d * phi.cos(), xi[1] + d * phi.sin()])
-                })
-                .collect();
-            g.bench_with_input(BenchmarkId::new(&name, d), &pairs, |b, pairs| {
-                let mut scratch = Scratch::default();
-                let mut i = 0;
-                b.iter(|| {
-                    let (xi, xe) = pairs[i & 63];
-                    i += 1;
-                    black_box(sv.eval(0, black_box(xi), black_box(xe), &mut scratch))
-                })
-            });
-        }
+        bench_distances(&mut g, &name, &sv);
+    }
+    g.finish();
+    // `learned` under other meta-models (what the kernel's size costs per
+    // evaluation), with the shipped one again in the same group.
+    let extra = extra_models();
+    if extra.is_empty() {
+        return;
+    }
+    let mut g = c.benchmark_group("svbssrdf_models");
+    for path in std::iter::once(shipped.to_string()).chain(extra) {
+        let model = MetaModelFile::load(Path::new(&path)).expect("meta-model");
+        let k = model.all.k;
+        let sv = SvBssrdf::new(
+            Method::Learned,
+            Variant::default(),
+            basis.clone(),
+            Some(Arc::new(model)),
+            vec![albedo.clone()],
+            Density::Map(density.clone()),
+        )
+        .expect("prepared");
+        let stem = Path::new(&path)
+            .file_stem()
+            .map_or(path.clone(), |s| s.to_string_lossy().into());
+        bench_distances(&mut g, &format!("learned_K{k}_{stem}"), &sv);
     }
     g.finish();
 }
