@@ -30,21 +30,6 @@ pub enum Engine {
     Lanes,
 }
 
-/// A walk over the path range `first..first + count` of stream family
-/// `seed`: (medium, source, bins, max_events, seed, first, count).
-type SimulateFn = fn(&Medium, &Source, &BinLookup, u32, u64, u64, u64) -> ProfileTally;
-
-impl Engine {
-    /// The engine's walk ([`simulate_scalar`] or
-    /// [`super::simd::simulate_lanes`]).
-    fn simulate_fn(self) -> SimulateFn {
-        match self {
-            Engine::Scalar => simulate_scalar,
-            Engine::Lanes => super::simd::simulate_lanes,
-        }
-    }
-}
-
 /// Everything that determines a profile simulation's result.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ProfileConfig {
@@ -90,7 +75,11 @@ impl ProfileConfig {
     pub fn simulate_chunk(&self, c: u64, bins: &BinLookup) -> ProfileTally {
         assert_eq!(bins.bins(), &self.bins, "a lookup of other bins");
         let (first, count) = chunk_paths(self.paths, c);
-        (self.engine.simulate_fn())(
+        let walk = match self.engine {
+            Engine::Scalar => simulate_scalar,
+            Engine::Lanes => super::simd::simulate_lanes,
+        };
+        walk(
             &self.medium,
             &self.source,
             bins,
