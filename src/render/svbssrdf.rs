@@ -321,6 +321,8 @@ struct Pyramids {
 #[derive(Clone, Debug, Default)]
 pub struct Scratch {
     kernel: Gmm,
+    first: Gmm,
+    last: Gmm,
 }
 
 /// The material (albedo channels and density) and one method, ready to
@@ -511,25 +513,34 @@ impl SvBssrdf {
             [1.0, 0.0]
         };
         let frame = Frame { xi, axis };
-        self.all_kernel(d, 0.5 * (ai + ae), rho0, &mut scratch.kernel);
+        let a0 = 0.5 * (ai + ae);
+        // The vertex kernels (learned only) are queried at the same (d, α₀,
+        // ρ₀) as the first all-vertex kernel: all of them are evaluated
+        // before any aggregation, so that their independent chains overlap.
+        let vertex = match (self.variant.vertex_kernels, self.method) {
+            (true, Method::Learned) => self.meta_for(a0),
+            _ => None,
+        };
+        self.all_kernel(d, a0, rho0, &mut scratch.kernel);
+        if let Some(meta) = vertex {
+            if let Some(first) = &meta.first {
+                first.eval_into(d, a0, rho0, &mut scratch.first);
+            }
+            meta.last.eval_into(d, a0, rho0, &mut scratch.last);
+        }
         let (mut alpha_t, mut rho_bar) = self.aggregate(c, &frame, &scratch.kernel);
+        // A point vertex kernel (manual's both; learned's first under normal
+        // incidence, `first: None`) aggregates to the point albedo in hand.
+        let (mut li, mut le) = (ai, ae);
+        if let Some(meta) = vertex {
+            if meta.first.is_some() {
+                li = self.aggregate(c, &frame, &scratch.first).0;
+            }
+            le = self.aggregate(c, &frame, &scratch.last).0;
+        }
         if self.variant.two_pass {
             self.all_kernel(d, alpha_t, rho_bar, &mut scratch.kernel);
             (alpha_t, rho_bar) = self.aggregate(c, &frame, &scratch.kernel);
-        }
-        let (mut li, mut le) = (ai, ae);
-        // A point vertex kernel (manual's both; learned's first under normal
-        // incidence, `first: None`) aggregates to the point albedo in hand.
-        let a0 = 0.5 * (ai + ae);
-        if let (true, Method::Learned, Some(meta)) =
-            (self.variant.vertex_kernels, self.method, self.meta_for(a0))
-        {
-            if let Some(first) = &meta.first {
-                first.eval_into(d, a0, rho0, &mut scratch.kernel);
-                li = self.aggregate(c, &frame, &scratch.kernel).0;
-            }
-            meta.last.eval_into(d, a0, rho0, &mut scratch.kernel);
-            le = self.aggregate(c, &frame, &scratch.kernel).0;
         }
         let b = &*self.basis;
         let (single, multi) = b.parts(d.max(R_MIN) * rho_bar, alpha_t);
@@ -1014,6 +1025,65 @@ mod tests {
                 .unwrap();
                 let s = sv.eval(0, [-3.0, 3.0], [-2.0, 3.5], &mut Scratch::default());
                 assert!(s.is_finite() && s >= 0.0, "{eps}: {s}");
+            }
+        }
+    }
+
+    /// `learned` with vertex kernels puts each kernel in its role: α_t and
+    /// ρ̄ from the all-vertex kernel (again at (α_t, ρ̄) with `two_pass`),
+    /// α_i from the first-vertex kernel when the model has one, α_e from the
+    /// last-vertex kernel (all evaluated at (d, α₀, ρ₀) before aggregating).
+    #[test]
+    fn learned_puts_each_kernel_in_its_role() {
+        let (_, t) = basis();
+        let mut file =
+            MetaModelFile::load(std::path::Path::new("data/profiles/metamodel.json")).unwrap();
+        // A first-vertex model unlike the last-vertex one (the shipped file
+        // has none: under normal incidence the first vertex is a δ).
+        file.first = Some(file.all.clone());
+        let meta = Arc::new(file);
+        let albedo = noise_map(24, 0.25, 0.2, 0.95, 7);
+        let density = noise_map(24, 0.25, 0.5, 3.0, 8);
+        for two_pass in [false, true] {
+            let variant = Variant {
+                two_pass,
+                ..Variant::default()
+            };
+            let sv = SvBssrdf::new(
+                Method::Learned,
+                variant,
+                t.clone(),
+                Some(meta.clone()),
+                vec![albedo.clone()],
+                Density::Map(density.clone()),
+            )
+            .unwrap();
+            for (xi, xe) in [([0.1, -0.2], [0.9, 0.4]), ([-1.0, 1.0], [1.5, -2.0])] {
+                let got = sv.eval(0, xi, xe, &mut Scratch::default());
+                let delta = [xe[0] - xi[0], xe[1] - xi[1]];
+                let d = delta[0].hypot(delta[1]);
+                let frame = Frame {
+                    xi,
+                    axis: [delta[0] / d, delta[1] / d],
+                };
+                let (ai, ae) = (albedo.at(xi[0], xi[1]), albedo.at(xe[0], xe[1]));
+                let rho0 = 0.5 * (density.at(xi[0], xi[1]) + density.at(xe[0], xe[1]));
+                let a0 = 0.5 * (ai + ae);
+                let agg = |k: &Gmm| sv.aggregate(0, &frame, k);
+                let (mut alpha_t, mut rho_bar) = agg(&meta.all.eval(d, a0, rho0).gmm);
+                if two_pass {
+                    (alpha_t, rho_bar) = agg(&meta.all.eval(d, alpha_t, rho_bar).gmm);
+                }
+                let first = meta.first.as_ref().unwrap();
+                let li = agg(&first.eval(d, a0, rho0).gmm).0;
+                let le = agg(&meta.last.eval(d, a0, rho0).gmm).0;
+                assert!(
+                    (li - le).abs() > 1e-3,
+                    "the two vertex kernels must differ here"
+                );
+                let (single, multi) = t.parts(d * rho_bar, alpha_t);
+                let want = rho_bar * rho_bar * (ai * single + li * le * multi);
+                assert_eq!(got, want, "two_pass {two_pass}, {xi:?} → {xe:?}");
             }
         }
     }
