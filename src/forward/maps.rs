@@ -295,14 +295,12 @@ impl Lookup {
     }
 }
 
-/// ⌊v⌋ as an index in 0..n (NaN and negatives to 0).
+/// ⌊v⌋ as an index in 0..n (NaN and negatives to 0). Through i64, whose
+/// saturating conversion (NaN to 0, ±∞ to the extremes) is a few
+/// instructions cheaper than usize's, and an integer clamp.
 #[inline]
 fn clamp_index(v: f64, n: usize) -> usize {
-    if v.is_nan() || v <= 0.0 {
-        0
-    } else {
-        (v as usize).min(n - 1)
-    }
+    (v as i64).clamp(0, n as i64 - 1) as usize
 }
 
 /// The fine index ranges (inclusive, clamped) that each of the ⌈n/M⌉ cells
