@@ -415,23 +415,19 @@ pub fn track_flight(
     let (inv_wx, inv_wy) = (1.0 / wx, 1.0 / wy);
     let (mut i, mut j) = (i, j);
     let (mut s, mut remaining) = (0.0f64, depth);
+    // The next face ahead: column j + 1 (w_x > 0) or j; row i (w_y > 0,
+    // toward +y) or i + 1. Selected without branches on the direction.
+    let (ahead_j, ahead_i) = (usize::from(wx > 0.0), usize::from(wy <= 0.0));
     loop {
         let rho = map.values[i * nx + j];
-        // Distance (from the start) to the next face in x and in y, if any.
-        let sx = if wx > 0.0 && j + 1 < nx {
-            (left + (j + 1) as f64 * tau - x) * inv_wx
-        } else if wx < 0.0 && j >= 1 {
-            (left + j as f64 * tau - x) * inv_wx
-        } else {
-            f64::INFINITY
-        };
-        let sy = if wy > 0.0 && i >= 1 {
-            (top - i as f64 * tau - y) * inv_wy
-        } else if wy < 0.0 && i + 1 < ny {
-            (top - (i + 1) as f64 * tau - y) * inv_wy
-        } else {
-            f64::INFINITY
-        };
+        // Distance (from the start) to the next face in x and in y, if any
+        // (none where the direction is parallel or the map ends).
+        let sx = (left + (j + ahead_j) as f64 * tau - x) * inv_wx;
+        let has_x = (wx > 0.0 && j + 1 < nx) || (wx < 0.0 && j >= 1);
+        let sx = if has_x { sx } else { f64::INFINITY };
+        let sy = (top - (i + ahead_i) as f64 * tau - y) * inv_wy;
+        let has_y = (wy > 0.0 && i >= 1) || (wy < 0.0 && i + 1 < ny);
+        let sy = if has_y { sy } else { f64::INFINITY };
         let next = sx.min(sy).min(s_max).max(s);
         let seg = next - s;
         if rho * seg >= remaining {
