@@ -259,6 +259,7 @@ impl GaussianPyramid {
     }
 
     fn with_config(map: &TexelMap, cfg: Config) -> Result<Self> {
+        use rayon::prelude::*;
         let map = TexelMap::new(map.nx, map.ny, map.texel, map.values.clone())?;
         if let Some(v) = map
             .values
@@ -300,8 +301,10 @@ impl GaussianPyramid {
         // stored in f32: the rounding does not accumulate over the levels.
         // Level 0: exact erf convolution of the texels.
         let (mut level, mut next, mut tmp) = (Vec::new(), Vec::new(), Vec::new());
-        let sx = texel_stencil(&map, false, &levels[0]);
-        let sy = texel_stencil(&map, true, &levels[0]);
+        let (sx, sy) = rayon::join(
+            || texel_stencil(&map, false, &levels[0]),
+            || texel_stencil(&map, true, &levels[0]),
+        );
         convolve_into(
             &map.values,
             (map.ny, map.nx),
@@ -309,15 +312,17 @@ impl GaussianPyramid {
             &mut tmp,
             &mut level,
         );
-        values.extend(level.iter().map(store));
+        values.par_extend(level.par_iter().map(store));
         // Level ℓ+1 = level ℓ blurred by σ_res (trapezoid rule, edge-clamped).
         for pair in levels.windows(2) {
             let (prev, lv) = (&pair[0], &pair[1]);
             let s_res = (lv.sigma * lv.sigma - prev.sigma * prev.sigma).sqrt();
-            let sx = node_stencil((prev.x0, prev.h, prev.sx), (lv.x0, lv.h, lv.sx), s_res);
-            let sy = node_stencil((prev.y0, prev.h, prev.sy), (lv.y0, lv.h, lv.sy), s_res);
+            let (sx, sy) = rayon::join(
+                || node_stencil((prev.x0, prev.h, prev.sx), (lv.x0, lv.h, lv.sx), s_res),
+                || node_stencil((prev.y0, prev.h, prev.sy), (lv.y0, lv.h, lv.sy), s_res),
+            );
             convolve_into(&level, (prev.sy, prev.sx), (&sx, &sy), &mut tmp, &mut next);
-            values.extend(next.iter().map(store));
+            values.par_extend(next.par_iter().map(store));
             std::mem::swap(&mut level, &mut next);
         }
         Ok(GaussianPyramid {
