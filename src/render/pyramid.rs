@@ -781,11 +781,27 @@ fn convolve_into(
     // unmapping of freed pages, per level. `tmp` is overwritten entirely, so
     // it is only resized; `out` accumulates, so it starts from zeros.)
     tmp.resize(rows * ox, 0.0);
-    tmp.par_chunks_mut(ox).enumerate().for_each(|(r, out)| {
-        let row = &src[r * cols..(r + 1) * cols];
-        for (k, t) in out.iter_mut().enumerate() {
+    // Four rows at a time, interleaved (column c of row 4g + i at 4c + i):
+    // the stencil of an output column is then one four-lane multiply-add
+    // per tap for all four rows, with no horizontal sums.
+    tmp.par_chunks_mut(4 * ox).enumerate().for_each(|(g, out)| {
+        let n = out.len() / ox;
+        let mut lanes = vec![0.0; 4 * cols];
+        for i in 0..n {
+            let row = &src[(4 * g + i) * cols..(4 * g + i + 1) * cols];
+            for (c, &v) in row.iter().enumerate() {
+                lanes[4 * c + i] = v;
+            }
+        }
+        for k in 0..ox {
             let w = &sx.w[sx.off[k]..sx.off[k] + sx.len[k]];
-            *t = dot(&row[sx.start[k]..sx.start[k] + w.len()], w);
+            let x = &lanes[4 * sx.start[k]..4 * (sx.start[k] + w.len())];
+            let acc = x.chunks_exact(4).zip(w).fold(f64x4::ZERO, |acc, (v, &wt)| {
+                f64x4::from([v[0], v[1], v[2], v[3]]).mul_add(f64x4::splat(wt), acc)
+            });
+            for (i, a) in acc.to_array().iter().enumerate().take(n) {
+                out[i * ox + k] = *a;
+            }
         }
     });
     out.clear();
@@ -810,35 +826,6 @@ fn convolve_into(
             }
         }
     });
-}
-
-/// Σ a_k·b_k in eight interleaved partial sums (two f64x4 accumulators of
-/// fused multiply-adds, then the tail): independent chains instead of one.
-/// A fixed order, so the result does not depend on the thread that
-/// computes it.
-#[inline]
-fn dot(a: &[f64], b: &[f64]) -> f64 {
-    let v = |x: &[f64]| f64x4::from([x[0], x[1], x[2], x[3]]);
-    let (a8, b8) = (a.chunks_exact(8), b.chunks_exact(8));
-    let (a4, b4) = (
-        a8.remainder().chunks_exact(4),
-        b8.remainder().chunks_exact(4),
-    );
-    let (mut acc0, mut acc1) = (f64x4::ZERO, f64x4::ZERO);
-    for (x, y) in a8.zip(b8) {
-        acc0 = v(&x[..4]).mul_add(v(&y[..4]), acc0);
-        acc1 = v(&x[4..]).mul_add(v(&y[4..]), acc1);
-    }
-    let tail: f64 = a4
-        .remainder()
-        .iter()
-        .zip(b4.remainder())
-        .map(|(x, y)| x * y)
-        .sum();
-    for (x, y) in a4.zip(b4) {
-        acc0 = v(x).mul_add(v(y), acc0);
-    }
-    (acc0 + acc1).reduce_add() + tail
 }
 
 #[cfg(test)]
