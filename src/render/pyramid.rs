@@ -784,26 +784,30 @@ fn convolve_into(
     // Four rows at a time, interleaved (column c of row 4g + i at 4c + i):
     // the stencil of an output column is then one four-lane multiply-add
     // per tap for all four rows, with no horizontal sums.
-    tmp.par_chunks_mut(4 * ox).enumerate().for_each(|(g, out)| {
-        let n = out.len() / ox;
-        let mut lanes = vec![0.0; 4 * cols];
-        for i in 0..n {
-            let row = &src[(4 * g + i) * cols..(4 * g + i + 1) * cols];
-            for (c, &v) in row.iter().enumerate() {
-                lanes[4 * c + i] = v;
+    // (One interleaving buffer per rayon job, not per group; lanes past the
+    // last row of a short final group hold stale values and are not stored.)
+    tmp.par_chunks_mut(4 * ox).enumerate().for_each_init(
+        || vec![0.0; 4 * cols],
+        |lanes, (g, out)| {
+            let n = out.len() / ox;
+            for i in 0..n {
+                let row = &src[(4 * g + i) * cols..(4 * g + i + 1) * cols];
+                for (c, &v) in row.iter().enumerate() {
+                    lanes[4 * c + i] = v;
+                }
             }
-        }
-        for k in 0..ox {
-            let w = &sx.w[sx.off[k]..sx.off[k] + sx.len[k]];
-            let x = &lanes[4 * sx.start[k]..4 * (sx.start[k] + w.len())];
-            let acc = x.chunks_exact(4).zip(w).fold(f64x4::ZERO, |acc, (v, &wt)| {
-                f64x4::from([v[0], v[1], v[2], v[3]]).mul_add(f64x4::splat(wt), acc)
-            });
-            for (i, a) in acc.to_array().iter().enumerate().take(n) {
-                out[i * ox + k] = *a;
+            for k in 0..ox {
+                let w = &sx.w[sx.off[k]..sx.off[k] + sx.len[k]];
+                let x = &lanes[4 * sx.start[k]..4 * (sx.start[k] + w.len())];
+                let acc = x.chunks_exact(4).zip(w).fold(f64x4::ZERO, |acc, (v, &wt)| {
+                    f64x4::from([v[0], v[1], v[2], v[3]]).mul_add(f64x4::splat(wt), acc)
+                });
+                for (i, a) in acc.to_array().iter().enumerate().take(n) {
+                    out[i * ox + k] = *a;
+                }
             }
-        }
-    });
+        },
+    );
     out.clear();
     out.resize(oy * ox, 0.0);
     out.par_chunks_mut(ox).enumerate().for_each(|(k, dst)| {
