@@ -224,6 +224,15 @@ impl Stencil {
         self.off.push(self.w.len());
         self.w.extend_from_slice(weights);
     }
+
+    /// Output node k's first input and its weights.
+    #[inline]
+    fn taps(&self, k: usize) -> (usize, &[f64]) {
+        (
+            self.start[k],
+            &self.w[self.off[k]..self.off[k] + self.len[k]],
+        )
+    }
 }
 
 /// Gaussian-pyramid representation of a [`TexelMap`] for O(1) Gaussian
@@ -797,8 +806,8 @@ fn convolve_into(
                 }
             }
             for k in 0..ox {
-                let w = &sx.w[sx.off[k]..sx.off[k] + sx.len[k]];
-                let x = &lanes[4 * sx.start[k]..4 * (sx.start[k] + w.len())];
+                let (start, w) = sx.taps(k);
+                let x = &lanes[4 * start..4 * (start + w.len())];
                 let acc = x.chunks_exact(4).zip(w).fold(f64x4::ZERO, |acc, (v, &wt)| {
                     f64x4::from([v[0], v[1], v[2], v[3]]).mul_add(f64x4::splat(wt), acc)
                 });
@@ -811,21 +820,21 @@ fn convolve_into(
     out.clear();
     out.resize(oy * ox, 0.0);
     out.par_chunks_mut(ox).enumerate().for_each(|(k, dst)| {
-        let w = &sy.w[sy.off[k]..sy.off[k] + sy.len[k]];
-        let row = |t: usize| &tmp[(sy.start[k] + t) * ox..(sy.start[k] + t + 1) * ox];
+        let (start, w) = sy.taps(k);
+        let row = |t: usize| &tmp[(start + t) * ox..(start + t + 1) * ox];
         // Four input rows per sweep of the output row: one load and store of
         // each output value per four taps, not per tap.
-        let quads = w.len() / 4;
-        for q in 0..quads {
-            let t = 4 * q;
-            let (w0, w1, w2, w3) = (w[t], w[t + 1], w[t + 2], w[t + 3]);
-            let (r0, r1, r2, r3) = (row(t), row(t + 1), row(t + 2), row(t + 3));
+        let quads = w.chunks_exact(4);
+        let rest = quads.remainder();
+        for (q, ws) in quads.enumerate() {
+            let [w0, w1, w2, w3] = [ws[0], ws[1], ws[2], ws[3]];
+            let (r0, r1, r2, r3) = (row(4 * q), row(4 * q + 1), row(4 * q + 2), row(4 * q + 3));
             for (i, d) in dst.iter_mut().enumerate() {
                 *d += w0.mul_add(r0[i], w1 * r1[i]) + w2.mul_add(r2[i], w3 * r3[i]);
             }
         }
-        for (t, wt) in w.iter().enumerate().skip(4 * quads) {
-            for (d, s) in dst.iter_mut().zip(row(t)) {
+        for (t, wt) in rest.iter().enumerate() {
+            for (d, s) in dst.iter_mut().zip(row(w.len() - rest.len() + t)) {
                 *d = wt.mul_add(*s, *d);
             }
         }
