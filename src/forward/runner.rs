@@ -76,6 +76,15 @@ pub fn chunk_paths(paths: u64, c: u64) -> (u64, u64) {
     (first, CHUNK_PATHS.min(paths.saturating_sub(first)))
 }
 
+/// Paths in the chunk ranges `chunks` of a simulation of `paths` paths.
+pub fn paths_in(paths: u64, chunks: &[(u64, u64)]) -> u64 {
+    let end = |c: u64| c.saturating_mul(CHUNK_PATHS).min(paths);
+    chunks
+        .iter()
+        .map(|&(lo, hi)| end(hi) - end(lo.min(hi)))
+        .sum()
+}
+
 /// Joins the chunk ranges of documents to be merged: they must be disjoint
 /// (the same shard twice is an error naming the file); adjacent ranges are
 /// coalesced, sorted.
@@ -106,11 +115,15 @@ pub fn join_chunks<'a>(
 }
 
 /// Checkpoint of a running simulation. `key` identifies the configuration
-/// (a resumed run must be the same simulation).
+/// and `range` the chunks the run covers: a resumed run must be the same
+/// simulation *and* the same shard, or its tally would claim chunks it does
+/// not hold (a shard 1/3 checkpoint resumed as shard 1/2 counts the overlap
+/// twice once merged).
 #[derive(Serialize, Deserialize)]
 struct Checkpoint<T> {
     format: String,
     key: serde_json::Value,
+    range: (u64, u64),
     next_chunk: u64,
     wall_s: f64,
     tally: T,
@@ -159,6 +172,16 @@ pub fn run<T: Tally>(
                 "checkpoint belongs to a different simulation (configuration differs)",
             ));
         }
+        if ck.range != range {
+            return Err(Error::format(
+                path,
+                "range",
+                format!(
+                    "checkpoint covers chunks {}..{}, this run {}..{} (another shard layout)",
+                    ck.range.0, ck.range.1, range.0, range.1
+                ),
+            ));
+        }
         if !(range.0..=range.1).contains(&ck.next_chunk) {
             return Err(Error::format(
                 path,
@@ -189,6 +212,7 @@ pub fn run<T: Tally>(
             let ck = Checkpoint {
                 format: "svkernel.checkpoint".into(),
                 key: key.clone(),
+                range,
                 next_chunk: next,
                 wall_s: wall_before + start.elapsed().as_secs_f64(),
                 tally: total.clone(),
@@ -244,6 +268,44 @@ mod tests {
                 .sum();
             assert_eq!(total, paths);
         }
+    }
+
+    /// The chunks a run merged, in order.
+    #[derive(Clone, Default, Serialize, Deserialize)]
+    struct Seen(Vec<u64>);
+
+    impl Tally for Seen {
+        fn merge(&mut self, o: &Self) {
+            self.0.extend_from_slice(&o.0);
+        }
+    }
+
+    #[test]
+    fn a_checkpoint_resumes_only_its_own_chunk_range() {
+        let dir = std::env::temp_dir().join(format!("svk-runner-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let opts = RunOptions {
+            checkpoint: Some(dir.join("run.ckpt")),
+            checkpoint_every: Duration::ZERO,
+            resume: true,
+            progress: false,
+        };
+        let key = serde_json::json!({ "sim": 1 });
+        let chunk = |c: u64| Seen(vec![c]);
+        // Two batches: the checkpoint after the first (next chunk 32) stays.
+        let full = run(&key, (0, 64), Seen::default(), chunk, &opts).unwrap();
+        assert_eq!(full.tally.0, (0..64).collect::<Vec<_>>());
+        // Resumed over the same range: the remaining chunks only, once each.
+        let resumed = run(&key, (0, 64), Seen::default(), chunk, &opts).unwrap();
+        assert_eq!(resumed.tally.0, full.tally.0);
+        // Another shard layout whose range contains the checkpoint's next
+        // chunk is refused: it would claim chunks 10..32 that it never ran.
+        let err = run(&key, (10, 64), Seen::default(), chunk, &opts)
+            .err()
+            .expect("a checkpoint of another chunk range must be refused")
+            .to_string();
+        assert!(err.contains("run.ckpt") && err.contains("range"), "{err}");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
