@@ -331,6 +331,43 @@ fn render_reference_shards_merge_and_bad_input() {
         .output()
         .unwrap();
     assert!(!o.status.success() && !d.join("bad.json").exists());
+    // Refused, naming the file and the key, nothing written:
+    let refused = |args: &[&str], needles: &[&str]| {
+        let out = d.join("never");
+        let o = bin().args(args).arg("--out").arg(&out).output().unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "{args:?} succeeded");
+        assert!(needles.iter().all(|n| err.contains(n)), "{err}");
+        assert!(!out.exists());
+    };
+    let scene_s = scene.to_str().unwrap();
+    let part0 = parts[0].to_str().unwrap();
+    // one shard's tally where a whole reference is needed;
+    refused(
+        &["render", scene_s, "--method", "reference", "--paths", "1e5"]
+            .into_iter()
+            .chain(["--reference-tally", part0])
+            .collect::<Vec<_>>(),
+        &["s0", "chunks"],
+    );
+    // a tally whose path count does not match its chunks (an edited or
+    // mixed-up file);
+    let mut doc = json(&parts[1]);
+    doc["tally"]["paths"] = (doc["tally"]["paths"].as_u64().unwrap() + 1).into();
+    let forged = d.join("forged.json");
+    std::fs::write(&forged, doc.to_string()).unwrap();
+    refused(
+        &["merge", part0, forged.to_str().unwrap()],
+        &["forged.json", "tally.paths"],
+    );
+    // a shard without chunks (1e5 paths make 7 chunks of 16384).
+    refused(
+        &["render", scene_s, "--method", "reference", "--paths", "1e5"]
+            .into_iter()
+            .chain(["--shard", "0/10"])
+            .collect::<Vec<_>>(),
+        &["--shard", "0/10"],
+    );
     // Unknown method and a malformed scene: non-zero, named, nothing written.
     for (args, needle) in [
         (vec!["--method", "pointy"], "--method"),

@@ -149,6 +149,9 @@ def load_reference(directory, tag):
         eta=float(meta["eta"]),
         g=float(meta["g"]),
         texel=float(meta["texel"]),
+        # The albedo array's own texel: differs from `texel` (τ/2) when the
+        # scene's channels differ in shape and were resampled onto one grid.
+        albedo_texel=float(meta.get("albedo_texel", meta["texel"])),
         radius=float(light["radius"]),
         irradiance=float(light.get("irradiance", 1.0)),
         n=n,
@@ -214,16 +217,17 @@ def disk_coverage(n, half_width, radius, sub=2048, centre=(0.0, 0.0)):
 def build_scene(mi, ref, args):
     T = mi.ScalarTransform4f
     tau, W, n = ref["texel"], ref["half_width"], ref["n"]
+    tau_a = ref["albedo_texel"]
     alb, dens = ref["albedo"], ref["density"]
     if alb.shape[2] == 1:
         alb = np.repeat(alb, 3, axis=2)  # grey: same value in r, g, b
     elif alb.shape[2] != 3:
         die("albedo must have 1 or 3 channels")
-    half = max(W, alb.shape[1] * tau / 2, alb.shape[0] * tau / 2,
+    half = max(W, alb.shape[1] * tau_a / 2, alb.shape[0] * tau_a / 2,
                dens.shape[1] * tau / 2, dens.shape[0] * tau / 2) + args.margin
     depth = args.depth
 
-    def volume(tex):
+    def volume(tex, tau):
         ny, nx = tex.shape[:2]
         kx, ky, x0, y0, wx, wy = grid_layout(ny, nx, tau, half + tau)
         data = padded_grid(tex, kx, ky)
@@ -239,8 +243,8 @@ def build_scene(mi, ref, args):
 
     medium = {
         "type": "heterogeneous",
-        "albedo": volume(alb),
-        "sigma_t": volume(dens[:, :, None]),
+        "albedo": volume(alb, tau_a),
+        "sigma_t": volume(dens[:, :, None], tau),
         "scale": 1.0,
         "phase": {"type": "hg", "g": ref["g"]},
         # No next-event estimation from the medium: through a smooth
@@ -312,10 +316,10 @@ def self_test(mi, ref, scene_dict, args):
     and just inside texel boundaries, and the sensor's pixel placement and
     emitter irradiance with a white Lambertian plane under the light."""
     ok = True
-    tau = ref["texel"]
     med = scene_dict["slab"]["interior"]
     rng = np.random.default_rng(7)
-    for key, tex in (("albedo", ref["albedo"]), ("sigma_t", ref["density"][:, :, None])):
+    for key, tex, tau in (("albedo", ref["albedo"], ref["albedo_texel"]),
+                          ("sigma_t", ref["density"][:, :, None], ref["texel"])):
         vol = mi.load_dict(med[key])
         ny, nx = tex.shape[:2]
         ext = max(nx, ny) * tau / 2 + 3 * tau

@@ -130,6 +130,51 @@ pub struct ReferenceDoc {
     pub provenance: Provenance,
 }
 
+impl ReferenceDoc {
+    /// Reads a reference tally document and checks that it is whole: its
+    /// header, the tally's shape against its key (resolution, channels), and
+    /// its path count against the chunks it claims. Errors name the file.
+    pub fn load(path: &Path) -> Result<Self> {
+        let doc: ReferenceDoc = crate::io::read_json(path)?;
+        crate::io::check_header(
+            path,
+            (&doc.format, doc.version),
+            (REFERENCE_FORMAT, REFERENCE_VERSION),
+        )?;
+        let t = &doc.tally;
+        let key_usize = |k: &str| doc.key.get(k).and_then(|v| v.as_u64());
+        let cells = t.resolution * t.resolution * t.channels;
+        let shape_ok = key_usize("resolution") == Some(t.resolution as u64)
+            && key_usize("channels") == Some(t.channels as u64)
+            && t.exits.len() == cells
+            && [t.radiance.len(), t.radiance_sq.len()]
+                .iter()
+                .all(|&l| l == 0 || l == cells)
+            && t.radiance.len() == t.radiance_sq.len();
+        if !shape_ok {
+            return Err(Error::format(
+                path,
+                "tally",
+                "shape does not match the key (resolution × resolution × channels)",
+            ));
+        }
+        let claimed = key_usize("paths")
+            .map(|p| crate::forward::runner::paths_in(p, &doc.chunks))
+            .ok_or_else(|| Error::format(path, "key.paths", "missing"))?;
+        if t.paths != claimed {
+            return Err(Error::format(
+                path,
+                "tally.paths",
+                format!(
+                    "{} paths, but its chunks {:?} hold {claimed}",
+                    t.paths, doc.chunks
+                ),
+            ));
+        }
+        Ok(doc)
+    }
+}
+
 /// One rendered image and what it cost.
 #[derive(Clone, Debug)]
 pub struct Rendered {
@@ -236,13 +281,27 @@ pub fn rel_rmse(m: &Image, r: &Image, subtract_own_noise: bool) -> f64 {
     from_sums(error_sums(&m, r, subtract_own_noise, 0..r.channels)).rel_rmse
 }
 
-/// A content hash of the scene file (FNV-1a, 64 bits, hex): identifies a
-/// reference simulation for checkpoints and merges.
+/// A content hash of the scene (FNV-1a, 64 bits, hex): the scene file's
+/// bytes, then every loaded map (shape, texel size and values, bit for bit).
+/// It identifies a reference simulation for checkpoints, merges and
+/// `--reference-tally`, so an edited texture file (`.npy`, `.exr`, `.png`)
+/// that the unchanged TOML points to is a different scene.
 pub fn scene_hash(scene: &Scene) -> Result<String> {
     let bytes = std::fs::read(&scene.path).map_err(|e| Error::io(&scene.path, e))?;
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for b in bytes {
-        h = (h ^ b as u64).wrapping_mul(0x0100_0000_01b3);
+    let mut eat = |bytes: &[u8]| {
+        for &b in bytes {
+            h = (h ^ b as u64).wrapping_mul(0x0100_0000_01b3);
+        }
+    };
+    eat(&bytes);
+    for m in scene.albedo.iter().chain(&scene.density) {
+        eat(&(m.nx as u64).to_le_bytes());
+        eat(&(m.ny as u64).to_le_bytes());
+        eat(&m.texel.to_le_bytes());
+        for v in &m.values {
+            eat(&v.to_le_bytes());
+        }
     }
     Ok(format!("{h:016x}"))
 }
@@ -381,12 +440,7 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                     let key = reference.key(&format!("{hash}/{tag}"));
                     let (tally, wall_s) = match opts.reference_tallies.get(pass_index) {
                         Some(path) => {
-                            let doc: ReferenceDoc = crate::io::read_json(path)?;
-                            crate::io::check_header(
-                                path,
-                                (&doc.format, doc.version),
-                                (REFERENCE_FORMAT, REFERENCE_VERSION),
-                            )?;
+                            let doc = ReferenceDoc::load(path)?;
                             if doc.key != key {
                                 return Err(Error::format(
                                     path,
@@ -394,10 +448,38 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                                     "tally belongs to a different scene, pass or setting",
                                 ));
                             }
+                            let all = chunk_range(paths, None);
+                            if doc.chunks != [all] {
+                                return Err(Error::format(
+                                    path,
+                                    "chunks",
+                                    format!(
+                                        "covers chunks {:?} of 0..{}: merge every shard \
+                                         first (`svkernel merge`)",
+                                        doc.chunks, all.1
+                                    ),
+                                ));
+                            }
                             (doc.tally, doc.wall_s)
                         }
                         None => {
                             let range = chunk_range(paths, opts.shard);
+                            if range.0 == range.1 {
+                                let s = opts.shard.map_or(String::new(), |s| {
+                                    format!(
+                                        "{}/{} of {} chunks",
+                                        s.index,
+                                        s.count,
+                                        chunk_range(paths, None).1
+                                    )
+                                });
+                                return Err(Error::param(
+                                    "--shard",
+                                    s,
+                                    "a shard that holds chunks: at most as many shards \
+                                     as chunks of 16384 paths",
+                                ));
+                            }
                             let mut run_opts = opts.run.clone();
                             run_opts.checkpoint = run_opts
                                 .checkpoint
@@ -491,12 +573,21 @@ pub fn tag_or(tag: &str) -> &str {
     if tag.is_empty() { "main" } else { tag }
 }
 
+/// The albedo channels on one texel grid (the scene's, unless the channels
+/// differ in shape: then the exact common grid of
+/// [`super::svbssrdf::common_grid`], whose texel may be τ/2).
+fn albedo_grid(scene: &Scene) -> Result<Vec<crate::forward::maps::TexelMap>> {
+    let maps: Vec<_> = scene.albedo.iter().collect();
+    super::svbssrdf::common_grid(&maps).map_err(|e| Error::format(&scene.path, "albedo", e))
+}
+
 /// Writes the pass's material as texel arrays for external renderers
 /// (`tools/mitsuba_check.py`): `albedo.npy` `(ny, nx)` or `(ny, nx, 3)` and
 /// `density.npy` `(ny, nx)` (a constant density as a 1 × 1 array), row 0 at
-/// +y, column 0 at −x, texel size and conventions in `render.json`.
+/// +y, column 0 at −x, texel sizes (`texel`, and `albedo_texel` for the
+/// albedo array) and conventions in `render.json`.
 fn write_maps(scene: &Scene, pass: &Pass, dir: &Path) -> Result<()> {
-    let a = &scene.albedo;
+    let a = albedo_grid(scene)?;
     let (nx, ny) = (a[0].nx, a[0].ny);
     let albedo =
         ndarray::Array3::from_shape_fn((ny, nx, a.len()), |(i, j, c)| a[c].values[i * nx + j]);
@@ -586,6 +677,7 @@ pub fn write_outputs(
         "eta": scene.eta,
         "g": scene.g,
         "texel": scene.texel,
+        "albedo_texel": albedo_grid(scene)?[0].texel,
         "light": {
             "kind": format!("{:?}", scene.light).to_lowercase(),
             "radius": scene.light_radius,
@@ -611,12 +703,7 @@ pub fn write_outputs(
 pub fn merge_reference(inputs: &[PathBuf], out: &Path) -> Result<()> {
     let mut docs: Vec<(PathBuf, ReferenceDoc)> = Vec::new();
     for p in inputs {
-        let doc: ReferenceDoc = crate::io::read_json(p)?;
-        crate::io::check_header(
-            p,
-            (&doc.format, doc.version),
-            (REFERENCE_FORMAT, REFERENCE_VERSION),
-        )?;
+        let doc = ReferenceDoc::load(p)?;
         if let Some((_, first)) = docs.first()
             && first.key != doc.key
         {
@@ -655,4 +742,70 @@ pub fn merge_reference(inputs: &[PathBuf], out: &Path) -> Result<()> {
         provenance: Provenance::current(),
     };
     crate::io::write_json_compact_atomic(out, &doc)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn dir(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("svk-job-{name}-{}", std::process::id()));
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    #[test]
+    fn the_scene_hash_covers_the_texture_files() {
+        let d = dir("hash");
+        let toml = d.join("s.toml");
+        std::fs::write(&toml, "texel = 0.5\nalbedo = { file = \"a.npy\" }\n").unwrap();
+        let hash_with = |v: f64| {
+            let a = ndarray::Array2::from_elem((3, 4), v);
+            ndarray_npy::write_npy(d.join("a.npy"), &a).unwrap();
+            scene_hash(&Scene::load(&toml).unwrap()).unwrap()
+        };
+        let (h1, h1_again, h2) = (hash_with(0.5), hash_with(0.5), hash_with(0.6));
+        assert_eq!(h1, h1_again);
+        assert_ne!(
+            h1, h2,
+            "an edited texture with the same TOML is another scene"
+        );
+        std::fs::remove_dir_all(&d).unwrap();
+    }
+
+    #[test]
+    fn albedo_channels_of_different_shapes_share_one_exact_grid() {
+        let d = dir("grid");
+        let toml = d.join("s.toml");
+        std::fs::write(
+            &toml,
+            "texel = 0.25\nalbedo = { channels = [\
+             { pattern = \"stripes\", values = [0.3, 0.95], width = 0.5, size = [9, 6] }, \
+             { constant = 0.5 }, { constant = 0.8 }] }\n",
+        )
+        .unwrap();
+        let scene = Scene::load(&toml).unwrap();
+        assert_ne!(
+            (scene.albedo[0].nx, scene.albedo[0].ny),
+            (scene.albedo[1].nx, scene.albedo[1].ny)
+        );
+        let g = albedo_grid(&scene).unwrap();
+        let (nx, ny, h) = (g[0].nx, g[0].ny, g[0].texel);
+        for (c, m) in g.iter().enumerate() {
+            assert_eq!((m.nx, m.ny, m.texel), (nx, ny, h));
+            // Every grid texel centre reads what the scene's channel reads.
+            for i in 0..ny {
+                for j in 0..nx {
+                    let x = -0.5 * nx as f64 * h + (j as f64 + 0.5) * h;
+                    let y = 0.5 * ny as f64 * h - (i as f64 + 0.5) * h;
+                    assert_eq!(
+                        m.values[i * nx + j],
+                        scene.albedo[c].at(x, y),
+                        "{c} {i} {j}"
+                    );
+                }
+            }
+        }
+        std::fs::remove_dir_all(&d).unwrap();
+    }
 }

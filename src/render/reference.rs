@@ -265,6 +265,7 @@ impl Reference {
             "seed": self.seed,
             "paths": self.paths,
             "resolution": self.view.resolution,
+            "channels": self.albedo.len(),
             "observable": format!("{:?}", self.observable),
             "tracking_cell_texels": self.grid.cell_texels,
         })

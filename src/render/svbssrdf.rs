@@ -769,7 +769,7 @@ fn density_weighted(albedo: &[TexelMap], density: &Density) -> Vec<TexelMap> {
 /// is exact): centred, half-width the largest of the maps', spacing τ, or
 /// τ/2 where the texel counts differ in parity (their edges are then offset
 /// by τ/2). Maps must share τ. Maps already of one shape come back as is.
-fn common_grid(maps: &[&TexelMap]) -> Result<Vec<TexelMap>> {
+pub(crate) fn common_grid(maps: &[&TexelMap]) -> Result<Vec<TexelMap>> {
     let tau = maps[0].texel;
     if maps.iter().any(|m| m.texel != tau) {
         return Err(Error::param(
