@@ -513,7 +513,7 @@ fn build_map(
     }
     let pattern = raw.pattern.as_deref().unwrap_or_default();
     let [nx, ny] = raw.size.unwrap_or([default_size, default_size]);
-    if nx == 0 || ny == 0 || nx * ny > 1 << 26 {
+    if nx == 0 || ny == 0 || nx.checked_mul(ny).is_none_or(|n| n > 1 << 26) {
         return Err(bad(
             ".size",
             format!("[{nx}, {ny}] must be positive and at most 2^26 texels"),
@@ -531,11 +531,18 @@ fn build_map(
             ))
         }
     };
+    let finite = |name: &str, v: f64| -> Result<f64> {
+        if v.is_finite() {
+            Ok(v)
+        } else {
+            Err(bad(&format!(".{name}"), format!("{v} must be finite")))
+        }
+    };
     // Selector in [0, 1] per texel centre (x, y): 0 → values[0], 1 → values[1].
     let select: Box<dyn Fn(f64, f64) -> f64> = match pattern {
         "stripes" => {
             let w = positive("width", raw.width, 0.5)?;
-            let a = raw.angle.unwrap_or(0.0).to_radians();
+            let a = finite("angle", raw.angle.unwrap_or(0.0))?.to_radians();
             Box::new(move |x, y| {
                 let u = x * a.cos() + y * a.sin();
                 ((u / w).floor().rem_euclid(2.0) != 0.0) as u8 as f64
