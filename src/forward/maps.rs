@@ -51,8 +51,9 @@ impl TexelMap {
             return (0, 0); // a constant map (the common case of the walks)
         }
         let j = ((x + 0.5 * self.nx as f64 * self.texel) / self.texel).floor();
-        // Rows run from +y down; the upper edge y = ny·τ/2 − iτ belongs to row i.
-        let i = ((0.5 * self.ny as f64 * self.texel - y) / self.texel).ceil() - 1.0;
+        // Rows run from +y down; the upper edge y = ny·τ/2 − iτ belongs to row
+        // i: ⌊(ny·τ/2 − y)/τ⌋ (the module's convention).
+        let i = ((0.5 * self.ny as f64 * self.texel - y) / self.texel).floor();
         (clamp_index(i, self.ny), clamp_index(j, self.nx))
     }
 
@@ -290,7 +291,7 @@ impl Lookup {
             return (0, 0);
         }
         let j = ((x - self.left) * self.inv_tau).floor();
-        let i = ((self.top - y) * self.inv_tau).ceil() - 1.0;
+        let i = ((self.top - y) * self.inv_tau).floor();
         (clamp_index(i, self.ny), clamp_index(j, self.nx))
     }
 }
@@ -333,7 +334,10 @@ mod tests {
         assert_eq!(m.texel_of(-0.99, 0.49), (0, 0)); // row 0 is +y, column 0 is −x
         assert_eq!(m.texel_of(0.99, -0.49), (1, 3));
         assert_eq!(m.texel_of(-0.5, 0.2), (0, 1)); // x edge belongs to the right texel
-        assert_eq!(m.texel_of(0.1, 0.0), (0, 2)); // y edge belongs to the upper row
+        // The y edge is the upper edge of the lower row, and belongs to it:
+        // y ∈ (ny·τ/2 − (i+1)τ, ny·τ/2 − iτ].
+        assert_eq!(m.texel_of(0.1, 0.0), (1, 2));
+        assert_eq!(m.texel_of(0.1, 0.5), (0, 2));
         assert_eq!(m.texel_of(-100.0, 100.0), (0, 0));
         assert_eq!(m.texel_of(100.0, -100.0), (1, 3));
         assert_eq!(m.texel_of(f64::NAN, 0.3), (0, 0));

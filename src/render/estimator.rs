@@ -119,14 +119,18 @@ impl View {
         )
     }
 
-    /// The pixel (i, j) holding (x, y), if inside the window.
+    /// The pixel (i, j) holding (x, y), if inside the window: with
+    /// u = (x + W)/h and v = (W − y)/h, j = ⌊u⌋ and i = ⌈v⌉ − 1, so that
+    /// a pixel holds its left and its lower edge, as in
+    /// [`Self::pixel_corner`] (x ∈ −W + [j, j+1)·h, y ∈ W − [i+1, i)·h) and
+    /// in the estimator's samples (corner + h·[0, 1)²).
     #[inline]
     pub fn pixel_of(&self, x: f64, y: f64) -> Option<(usize, usize)> {
         let n = self.resolution as f64;
         let h = 2.0 * self.half_width / n;
         let (u, v) = ((x + self.half_width) / h, (self.half_width - y) / h);
-        if (0.0..n).contains(&u) && (0.0..n).contains(&v) {
-            Some((v as usize, u as usize))
+        if (0.0..n).contains(&u) && v > 0.0 && v <= n {
+            Some(((v.ceil() - 1.0) as usize, u as usize))
         } else {
             None
         }
@@ -602,9 +606,16 @@ mod tests {
         assert_eq!(v.pixel_of(1.9, -1.9), Some((3, 3)));
         assert_eq!(v.pixel_of(2.0, 0.0), None);
         assert_eq!(v.pixel_of(f64::NAN, 0.0), None);
+        assert_eq!(v.pixel_of(0.0, f64::NAN), None);
+        // Edges: a pixel holds its left and its lower edge (its corner).
+        assert_eq!(v.pixel_of(0.5, 1.0), Some((0, 2)));
+        assert_eq!(v.pixel_of(0.5, -2.0), Some((3, 2)));
+        assert_eq!(v.pixel_of(0.5, 2.0), None);
+        assert_eq!(v.pixel_of(-2.0, 0.5), Some((1, 0)));
         for i in 0..4 {
             for j in 0..4 {
                 let (c, h) = v.pixel_corner(i, j);
+                assert_eq!(v.pixel_of(c[0], c[1]), Some((i, j)));
                 assert_eq!(v.pixel_of(c[0] + 0.5 * h, c[1] + 0.5 * h), Some((i, j)));
             }
         }
