@@ -251,22 +251,29 @@ impl BasisModel {
     /// The multiple-scattering density p_m(r; α).
     pub fn multi(&self, alpha: f64) -> ExpMixture {
         let alpha = alpha.clamp(0.0, 1.0);
+        let (ln_a, b) = self.multi_over_alpha2(alpha);
+        ExpMixture {
+            a: ln_a.iter().map(|l| alpha * alpha * l.exp()).collect(),
+            b,
+            power: 1,
+        }
+    }
+
+    /// (ln(A_j/α²), B_j) of p_m(r; α) = α²·Σ_j (A_j/α²)·e^{−B_j r}: the
+    /// polynomials themselves, so that p_m/α² stays exact as α → 0 (no α²
+    /// to multiply in and divide out, which would underflow there).
+    pub fn multi_over_alpha2(&self, alpha: f64) -> (Vec<f64>, Vec<f64>) {
+        let alpha = alpha.clamp(0.0, 1.0);
         let mut t = vec![0.0; self.degree + 1];
         chebyshev(2.0 * albedo_coordinate(alpha) - 1.0, self.degree, &mut t);
         let dot = |c: &Vec<f64>| c.iter().zip(&t).map(|(c, t)| c * t).sum::<f64>();
-        ExpMixture {
-            a: self
-                .ln_a
-                .iter()
-                .map(|c| alpha * alpha * dot(c).exp())
-                .collect(),
-            b: self
-                .ln_b
+        (
+            self.ln_a.iter().map(dot).collect(),
+            self.ln_b
                 .iter()
                 .map(|c| rate_from_theta(dot(c)).0)
                 .collect(),
-            power: 1,
-        }
+        )
     }
 
     /// The single-scattering density α·p₁(r).

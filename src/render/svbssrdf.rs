@@ -181,11 +181,11 @@ impl BasisTable {
         let mut nodes = Vec::with_capacity(TABLE_NODES * 2 * k);
         for n in 0..TABLE_NODES {
             let x = n as f64 / (TABLE_NODES - 1) as f64;
-            // α from x; at α = 0 use A/α² from a tiny α (the ratio is smooth).
-            let alpha = (1.0 - x * x).max(1e-150);
-            let m = model.multi(alpha);
-            nodes.extend(m.a.iter().map(|a| (a / (alpha * alpha) / (2.0 * PI)).ln()));
-            nodes.extend(m.b.iter().copied());
+            // ln(A/(2πα²)) straight from the model's polynomials: exact at
+            // α = 0 too (x = 1).
+            let (ln_a, b) = model.multi_over_alpha2(1.0 - x * x);
+            nodes.extend(ln_a.iter().map(|l| l - (2.0 * PI).ln()));
+            nodes.extend(b);
         }
         BasisTable {
             k,
@@ -889,6 +889,30 @@ mod tests {
         let r = 0.7;
         let want = m.single(1.0).density(r) / (2.0 * PI * r);
         assert!((t.single_exitance(r) - want).abs() < 1e-15 * want.max(1.0));
+    }
+
+    #[test]
+    fn the_table_stays_exact_at_zero_albedo_for_tiny_amplitudes() {
+        // Amplitudes e^{-60}: α²·A/α² underflowed at the old table's
+        // α = 1e-150 stand-in, leaving Rₘ/α² = 0 at α = 0.
+        let (mut m, _) = basis();
+        for c in &mut m.ln_a {
+            c[0] -= 60.0;
+        }
+        let t = BasisTable::new(&m);
+        for alpha in [0.0, 1e-6, 0.3] {
+            let (ln_a, b) = m.multi_over_alpha2(alpha);
+            let want: f64 = ln_a
+                .iter()
+                .zip(&b)
+                .map(|(l, b)| (l - b * 0.5).exp() / (2.0 * PI))
+                .sum();
+            let got = t.multi_over_alpha2(0.5, alpha);
+            assert!(
+                want > 0.0 && (got / want - 1.0).abs() < 1e-3,
+                "{alpha}: {got} vs {want}"
+            );
+        }
     }
 
     #[test]
