@@ -92,3 +92,35 @@ fn albedo_just_below_one_still_absorbs() {
     let d = run(1.0 - 1e-9, 0.0, 1.0, 1.0, Source::Pencil, Engine::Lanes);
     assert_sane(&d, "α = 1 − 1e-9");
 }
+
+/// Radial bins must end at r_max: a ratio r_max/r_min that is not a whole
+/// number of rings is refused, naming the bins; whole ones end exactly there.
+#[test]
+fn radial_bins_end_at_r_max() {
+    let with = |r_max: f64| ProfileConfig {
+        medium: Medium::new(0.5, 0.0, 1.0, 1.0, None).unwrap(),
+        source: Source::Pencil,
+        paths: 10,
+        seed: 1,
+        max_events: 100,
+        bins: RadialBins {
+            r_min: 1e-3,
+            r_max,
+            per_decade: 20,
+        },
+        engine: Engine::Scalar,
+    };
+    for r_max in [52.0, 60.0] {
+        let err = with(r_max).validate().unwrap_err().to_string();
+        assert!(
+            err.contains("bins") && err.contains("whole number"),
+            "{err}"
+        );
+    }
+    for r_max in [100.0, 10f64.powf(1.35)] {
+        let c = with(r_max);
+        assert!(c.validate().is_ok(), "{r_max}");
+        let last = *c.bins.edges().last().unwrap();
+        assert!((last / r_max - 1.0).abs() < 1e-12, "{last} vs {r_max}");
+    }
+}

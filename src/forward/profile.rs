@@ -67,6 +67,16 @@ impl ProfileConfig {
                 "0 < r_min < r_max, per_decade > 0",
             ));
         }
+        // The last ring must end at r_max (the overflow bin is "beyond
+        // r_max"), so r_max/r_min must be a whole number of ring ratios.
+        let rings = (b.r_max / b.r_min).log10() * b.per_decade as f64;
+        if (rings - rings.round()).abs() > 1e-6 * rings.max(1.0) {
+            return Err(Error::param(
+                "bins",
+                format!("{b:?}"),
+                "r_max/r_min = 10^(k/per_decade) for a whole number k of rings",
+            ));
+        }
         Ok(())
     }
 
