@@ -17,7 +17,11 @@
 //! 3. otherwise move by s and collide: scatter if b < α·2³² (an integer
 //!    comparison, exact to 2⁻³² for any α), else be absorbed. A scattered path
 //!    turns by the Henyey–Greenstein cos θ from u_c and the azimuth
-//!    φ = 2π·b/(α·2³²) (b is uniform below its threshold, so it is reused).
+//!    φ = 2π(b + ½)/t with t = α·2³² rounded ([`threshold_u32`]): b is
+//!    uniform below its threshold, so it is reused. (Hence at tiny α only t
+//!    azimuths exist, and the effective albedo is t/2³²: e.g. α = 10⁻⁹ gives
+//!    t = 4, four azimuths and an albedo 7 % low — irrelevant where scattering
+//!    is that rare.)
 //!
 //! # Termination at α = 1
 //!

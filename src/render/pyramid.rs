@@ -85,7 +85,7 @@ use wide::bytemuck::cast;
 use wide::{f64x4, u64x4};
 
 /// σ_0/τ: the width of level 0 in texels. Below σ_0 the query falls back to
-/// the exact erf sum over a window of at most ⌊14σ_0/τ⌋ + 2 texels a side.
+/// the exact erf sum over a window of at most ⌊8σ_0/τ⌋ + 2 texels a side.
 pub const SIGMA0_TEXELS: f64 = 1.0;
 
 /// Levels per octave of σ: r = σ_{ℓ+1}/σ_ℓ = 2^{1/6}, a variance ratio
