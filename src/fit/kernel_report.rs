@@ -540,16 +540,7 @@ pub fn density_step_experiment(
             };
             let cell_tally = k.run();
             let h = cell_tally.normalized(&grid, VertexClass::All, alpha, d, lambda);
-            let hist = KernelHistogram {
-                d,
-                t_edges: h.u_edges.iter().map(|u| 0.5 * d + lambda * u).collect(),
-                s_edges: h.v_edges.iter().map(|v| lambda * v).collect(),
-                mass: h.mass,
-                sigma: h.sigma,
-                overflow: h.overflow,
-                overflow_sigma: h.overflow_sigma,
-                paths: h.paths,
-            };
+            let hist = super::meta::fit_histogram(h);
             let cell = Cell { alpha, d, hist };
             // Kernel-weighted density: mass on each side of the step.
             let weighted = |g: &Gmm| {
