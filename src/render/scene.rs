@@ -506,10 +506,8 @@ fn build_map(
                 ));
             }
         };
-        return loaded.map_err(|e| match e {
-            Error::Format { .. } | Error::Io { .. } => e,
-            other => bad(".file", other.to_string()),
-        });
+        // Named by the scene file and key; the message names the map file.
+        return loaded.map_err(|e| bad(".file", e.to_string()));
     }
     let pattern = raw.pattern.as_deref().unwrap_or_default();
     let [nx, ny] = raw.size.unwrap_or([default_size, default_size]);
@@ -801,6 +799,18 @@ mod tests {
                 .unwrap_err()
                 .to_string()
                 .contains("albedo.file")
+        );
+        // A missing map file: the scene, the key and the map are named.
+        let p = write(
+            "gone.toml",
+            "texel = 1.0\nalbedo = { constant = 0.5 }\ndensity = { file = \"gone.npy\" }\n",
+        );
+        let err = Scene::load(&p).unwrap_err().to_string();
+        assert!(
+            ["gone.toml", "density.file", "gone.npy"]
+                .iter()
+                .all(|n| err.contains(n)),
+            "{err}"
         );
     }
 
