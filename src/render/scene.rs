@@ -42,6 +42,10 @@
 //!   transfer stated explicitly (`srgb` decodes IEC 61966-2-1 to linear).
 //!   Image row 0 is +y, column 0 is −x, one pixel per texel.
 //!
+//! A key that the map's kind does not read (e.g. `width` on a checker) is
+//! an error, not ignored; `size` is accepted on constants (it changes
+//! nothing).
+//!
 //! Every map is sampled on a texel grid of `size` = `[nx, ny]` texels
 //! (`size` key of the map table; default: enough texels of size τ to cover the
 //! image plus 4 MFP on every side) with the texel conventions of
@@ -436,6 +440,53 @@ fn build_map(
             "give exactly one of constant, rgb, pattern, file, channels".into(),
         ));
     }
+    // A key the map's kind does not read is an error, not silently ignored
+    // (e.g. `width` on a checker, whose cell would stay at its default).
+    let (what, takes): (String, &[&str]) = match (&raw.pattern, &raw.file) {
+        (Some(p), _) => (
+            format!("pattern \"{p}\""),
+            match p.as_str() {
+                "stripes" => &["values", "size", "width", "angle"],
+                "checker" => &["values", "size", "cell"],
+                "ramp" => &["values", "size", "length"],
+                "dots" => &["values", "size", "spacing", "radius"],
+                "complex" => &["values", "size", "seed"],
+                _ => &[
+                    "values", "size", "width", "angle", "cell", "length", "spacing", "radius",
+                    "seed",
+                ],
+            },
+        ),
+        (None, Some(_)) => ("a file map".into(), &["transfer"]),
+        // A constant reads the same at every size: `size` is harmless.
+        _ if raw.constant.is_some() || raw.rgb.is_some() => ("a constant map".into(), &["size"]),
+        _ => ("this map".into(), &[]),
+    };
+    let given = [
+        ("values", raw.values.is_some()),
+        ("width", raw.width.is_some()),
+        ("angle", raw.angle.is_some()),
+        ("cell", raw.cell.is_some()),
+        ("length", raw.length.is_some()),
+        ("spacing", raw.spacing.is_some()),
+        ("radius", raw.radius.is_some()),
+        ("seed", raw.seed.is_some()),
+        ("transfer", raw.transfer.is_some()),
+        ("size", raw.size.is_some()),
+    ];
+    if let Some((k, _)) = given.iter().find(|(k, on)| *on && !takes.contains(k)) {
+        return Err(bad(
+            &format!(".{k}"),
+            format!("not a key of {what} (it takes: {})", {
+                let t = takes.join(", ");
+                if t.is_empty() {
+                    "no other key".to_string()
+                } else {
+                    t
+                }
+            }),
+        ));
+    }
     if let Some(ch) = &raw.channels {
         if ch.len() != 3 {
             return Err(bad(
@@ -800,6 +851,22 @@ mod tests {
                 .to_string()
                 .contains("albedo.file")
         );
+        // A key the map does not read.
+        for (name, text, key) in [
+            (
+                "width.toml",
+                "texel = 1.0\nalbedo = { pattern = \"checker\", values = [0.3, 0.9], width = 0.5 }\n",
+                "albedo.width",
+            ),
+            (
+                "transfer.toml",
+                "texel = 1.0\nalbedo = { constant = 0.5, transfer = \"srgb\" }\n",
+                "albedo.transfer",
+            ),
+        ] {
+            let err = Scene::load(&write(name, text)).unwrap_err().to_string();
+            assert!(err.contains(key) && err.contains("not a key"), "{err}");
+        }
         // A missing map file: the scene, the key and the map are named.
         let p = write(
             "gone.toml",
