@@ -541,7 +541,7 @@ pub struct NormalizedHistogram {
     pub sigma: Vec<f64>,
     /// The error of the bin's mean per-path count divided by n̄_c, i.e. the
     /// mass's error with the denominator Σn_c treated as exact: the joint
-    /// fit's weights ([`crate::fit::meta::histogram_from_doc`] says why).
+    /// fit's weights ([`crate::fit::meta::fit_histogram`] says why).
     pub count_sigma: Vec<f64>,
     pub overflow: f64,
     pub overflow_sigma: f64,

@@ -477,7 +477,7 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                                     "--shard",
                                     s,
                                     "a shard that holds chunks: at most as many shards \
-                                     as chunks of 16384 paths",
+                                     as chunks",
                                 ));
                             }
                             let mut run_opts = opts.run.clone();
