@@ -586,6 +586,35 @@ fn cluster_scripts_shard_and_merge_like_one_run() {
     std::fs::remove_dir_all(&d).unwrap();
 }
 
+/// A homogeneous material outside the meta-model's albedo range: every
+/// method is the profile, so no kernel extension is simulated (it was: 5e7
+/// paths and a fit, unused).
+#[test]
+fn a_homogeneous_scene_simulates_no_kernel_extension() {
+    let d = tmpdir("homog");
+    let scene = d.join("s.toml");
+    std::fs::write(
+        &scene,
+        "texel = 0.25\nalbedo = { constant = 0.1 }\nmethods = [\"learned\"]\n\
+         [light]\nradius = 1.0\n[image]\nresolution = 4\nhalf_width = 2.0\n",
+    )
+    .unwrap();
+    let cache = d.join("cache");
+    let o = bin()
+        .arg("render")
+        .arg(&scene)
+        .args(["--method", "learned", "--spp", "4", "--cache"])
+        .arg(&cache)
+        .arg("--out")
+        .arg(d.join("out"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let cached = std::fs::read_dir(&cache).map_or(0, |r| r.count());
+    assert_eq!(cached, 0, "a kernel extension was simulated");
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
 /// A reference render killed with SIGKILL after a checkpoint and resumed
 /// gives bitwise the uninterrupted tally; the killed run leaves no images.
 #[test]

@@ -350,6 +350,14 @@ fn range_effect(
         .all
         .alpha_range;
     Ok(Some(match extension {
+        None if plan.homogeneous => Effect {
+            name: "kernel simulation (missing albedo range)",
+            needed: false,
+            detail: format!(
+                "the material is homogeneous (α = {lo}): learned is the profile, no kernel to \
+                 simulate or fit"
+            ),
+        },
         None if opts.cache.is_none()
             && super::extend::missing(plan.albedo_range, trained).is_some() =>
         {

@@ -378,22 +378,25 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
         None
     };
     let plan = analyse(scene, opts.analysis);
-    // Albedos outside the trained range: simulate and fit only those.
+    // Albedos outside the trained range: simulate and fit only those (not
+    // for a homogeneous material, whose every method is the profile).
     let (extension, extension_model) = match (&meta, &opts.cache) {
-        (Some(m), Some(cache)) => match extend::missing(plan.albedo_range, m.all.alpha_range) {
-            Some(missing) => {
-                let (done, model) = extend::ensure(
-                    m,
-                    &opts.meta,
-                    &opts.kernels,
-                    missing,
-                    cache,
-                    opts.run.progress,
-                )?;
-                (Some(done), Some(Arc::new(model)))
+        (Some(m), Some(cache)) if !plan.homogeneous => {
+            match extend::missing(plan.albedo_range, m.all.alpha_range) {
+                Some(missing) => {
+                    let (done, model) = extend::ensure(
+                        m,
+                        &opts.meta,
+                        &opts.kernels,
+                        missing,
+                        cache,
+                        opts.run.progress,
+                    )?;
+                    (Some(done), Some(Arc::new(model)))
+                }
+                None => (None, None),
             }
-            None => (None, None),
-        },
+        }
         _ => (None, None),
     };
     let view = View {
