@@ -380,10 +380,10 @@ impl Scene {
     /// True if the RGB channels are identical (render one channel).
     pub fn is_grey(&self) -> bool {
         self.albedo.len() == 1
-            || self
-                .albedo
-                .iter()
-                .all(|m| m.values == self.albedo[0].values)
+            || self.albedo.iter().all(|m| {
+                (m.nx, m.ny, &m.values)
+                    == (self.albedo[0].nx, self.albedo[0].ny, &self.albedo[0].values)
+            })
     }
 }
 
@@ -897,6 +897,19 @@ mod tests {
         assert_eq!(m.at(0.2, 0.0), 0.3);
         assert!(!s.albedo_is_constant() && s.is_grey());
         assert_eq!(s.methods.len(), method_names().len());
+        // Channels with the same values in different shapes are not grey.
+        let p = write(
+            "shapes.toml",
+            "texel = 0.25\nalbedo = { channels = [\
+             { pattern = \"ramp\", values = [0.2, 0.9], length = 0.5, size = [2, 1] }, \
+             { constant = 0.2 }, \
+             { pattern = \"ramp\", values = [0.2, 0.9], length = 0.5, size = [2, 1] }] }\n",
+        );
+        let mut s = Scene::load(&p).unwrap();
+        let (a, b) = (s.albedo[0].clone(), &mut s.albedo[1]);
+        *b = TexelMap::new(1, 2, a.texel, a.values.clone()).unwrap();
+        assert_eq!(s.albedo[1].values, s.albedo[0].values);
+        assert!(!s.is_grey());
     }
 
     #[test]
