@@ -372,6 +372,9 @@ fn render_reference_shards_merge_and_bad_input() {
     for (args, needle) in [
         (vec!["--method", "pointy"], "--method"),
         (vec!["--spp", "0"], "--spp"),
+        // One sample per pixel has no standard error.
+        (vec!["--spp", "1"], "--spp"),
+        (vec!["--spp", "3", "--sampling", "mis"], "--spp"),
     ] {
         let out = d.join("never");
         let o = bin()

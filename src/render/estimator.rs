@@ -174,6 +174,24 @@ pub struct Settings {
     pub observable: Observable,
 }
 
+impl Settings {
+    /// Samples per pixel enough for a standard error: two per strategy
+    /// group (with one, a group's variance is unknown and the pixel's
+    /// standard error would come out 0, so "noise subtracted" comparisons
+    /// would silently include the model's whole noise).
+    pub fn validate(&self) -> crate::Result<()> {
+        let least = if self.sampling == Sampling::Mis { 4 } else { 2 };
+        if self.spp < least {
+            return Err(crate::Error::param(
+                "--spp (or the scene's samples)",
+                self.spp,
+                ">= 2 per sampling strategy (>= 4 with mis): a standard error needs two samples",
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// The radial importance sampler of one pixel: the basis profile at
 /// (α_s, ρ_s), p(x) = Σ A_k x^n e^{−B_k x} at unit density (x = ρr), as two
 /// mixtures (single: n = 0, multiple: n = 1).

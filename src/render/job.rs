@@ -411,6 +411,9 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
         seed: opts.seed,
         observable: scene.observable,
     };
+    if targets.iter().any(|t| matches!(t, Target::Model(_))) {
+        settings.validate()?;
+    }
     let hash = scene_hash(scene)?;
     let albedo = plan.albedo(scene);
     let mut out = Vec::new();
