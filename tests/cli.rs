@@ -350,6 +350,15 @@ fn render_reference_shards_merge_and_bad_input() {
             .collect::<Vec<_>>(),
         &["s0", "chunks"],
     );
+    // as many tallies as the scene has passes;
+    let merged_s = merged.to_str().unwrap();
+    refused(
+        &["render", scene_s, "--method", "reference", "--paths", "1e5"]
+            .into_iter()
+            .chain(["--reference-tally", merged_s, "--reference-tally", merged_s])
+            .collect::<Vec<_>>(),
+        &["--reference-tally", "2 files for 1 passes"],
+    );
     // a tally whose path count does not match its chunks (an edited or
     // mixed-up file);
     let mut doc = json(&parts[1]);

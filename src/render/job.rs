@@ -417,7 +417,16 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
     let hash = scene_hash(scene)?;
     let albedo = plan.albedo(scene);
     let mut out = Vec::new();
-    for (pass_index, (tag, rho)) in passes(scene).into_iter().enumerate() {
+    let all_passes = passes(scene);
+    let tallies = opts.reference_tallies.len();
+    if tallies > 0 && tallies != all_passes.len() {
+        return Err(Error::param(
+            "--reference-tally",
+            format!("{tallies} files for {} passes", all_passes.len()),
+            "one tally per pass, in the scene's order (its density sweep)",
+        ));
+    }
+    for (pass_index, (tag, rho)) in all_passes.into_iter().enumerate() {
         let density_map = if rho.is_some() {
             None
         } else {
