@@ -705,7 +705,7 @@ pub fn write_outputs(
         "seed": opts.seed,
         "reference_paths": opts.reference_paths.unwrap_or(scene.reference_paths),
         "shard": opts.shard.map(|s| format!("{}/{}", s.index, s.count)),
-        "tone_map": "sRGB OETF of clamp(v / white_point, 0, 1); white_point = 99.5th percentile of the reference",
+        "tone_map": "sRGB OETF of clamp(v / white_point, 0, 1); white_point = 99.5th percentile of the reference, or of the pass's first image without one",
         "passes": pass_docs,
         "provenance": Provenance::current(),
     });

@@ -4,8 +4,9 @@
 //!
 //! # Tone map of the PNG previews (stated, shared by all methods of a scene)
 //! v ↦ sRGB-OETF(clamp(v/white, 0, 1)) in 8 bits, with `white` the 99.5th
-//! percentile of the *reference* image (or of the image itself when there is
-//! no reference), so that every method of a scene is shown on one scale.
+//! percentile of the *reference* image (or, when the pass has no reference,
+//! of its first rendered image), so that every method of a scene is shown
+//! on one scale.
 //! Signed differences use a diverging map (blue − / white 0 / red +) with
 //! full scale ±`range`.
 
