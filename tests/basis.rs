@@ -153,3 +153,20 @@ fn model_file_round_trips_and_bad_files_are_named() {
     );
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// The basis is a point-source profile: profiles of a disk source (whose
+/// bins carry the power πR²) are refused with an error, not mis-fitted.
+#[test]
+fn disk_source_profiles_are_refused() {
+    use svkernel::fit::basis::fit_basis;
+    use svkernel::forward::medium::Source;
+    let mut docs = load_profiles(Path::new(PROFILES)).unwrap();
+    for d in &mut docs {
+        d.config.source = Source::Collimated { radius: 1.0 };
+    }
+    let err = fit_basis(&docs, 6, 5, &FitOptions::default(), serde_json::Value::Null)
+        .err()
+        .expect("a disk source must be refused")
+        .to_string();
+    assert!(err.contains("disk source"), "{err}");
+}

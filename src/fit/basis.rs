@@ -6,17 +6,21 @@
 //! constraint residual, (Rₘ(1) + R₁(1) − (1 − R_sp))/σ_c, which pins the
 //! energy of the conservative medium (all light that enters comes back).
 //! Parameters: the Chebyshev coefficients a_kj of ln(A_k/α²) and b_kj of
-//! ln B_k in t = 2·sqrt(1 − α) − 1. With c_kij the ring term of component k
-//! and T_j = T_j(t_i): ∂m_ij/∂a_kj = c_kij·T_j, ∂m_ij/∂b_kj = (∂c_kij/∂ln B)·T_j.
+//! the bounded rate parameter θ_k (B_k = [`super::exp_mixture`]'s rate of θ_k)
+//! in t = 2·sqrt(1 − α) − 1. With c_kij the ring term of component k and
+//! T_j = T_j(t_i): ∂m_ij/∂a_kj = c_kij·T_j,
+//! ∂m_ij/∂b_kj = (∂c_kij/∂ln B)·(∂ln B/∂θ)·T_j.
 //!
-//! Initialisation (no label switching, no hand tuning): the rates are a
-//! fixed log-spaced grid β_k scaled by each profile's mean radius r̄(α),
-//! B_k(α) = β_k/r̄(α); the amplitudes at each albedo come from NNLS; then
-//! polynomials in t are fitted to ln r̄ and to ln(A_k/α²) (energy weighted),
-//! and Levenberg–Marquardt refines everything jointly.
+//! Initialisation (no label switching, no hand tuning): every profile is
+//! fitted alone (K exponentials, rates sorted), rank k is followed across
+//! albedos, polynomials in t are fitted to ln(A_k/α²) and θ_k weighted by the
+//! component's energy share, and Levenberg–Marquardt refines everything
+//! jointly. A profile whose own fit fails stops the fit (an error naming
+//! it).
 
 use super::exp_mixture::{BinnedDensity, Order, fit_mixture, safe_exp, theta_from_rate};
 use super::lm::{Blocks, FitError, FitOptions, FitReport, solve};
+use crate::forward::medium::Source;
 use crate::forward::profile::ProfileDoc;
 use crate::metamodel::basis::{
     BASIS_FORMAT, BASIS_VERSION, BasisModel, ExpMixture, albedo_coordinate, chebyshev,
@@ -278,6 +282,16 @@ pub fn fit_basis(
             d.config.medium.alpha
         )));
     }
+    // The basis is a point-source profile: a disk source's bins carry its
+    // power πR² and its exitance is the profile convolved with the disk.
+    if let Source::Collimated { radius } | Source::Diffuse { radius } = c0.source
+        && radius > 0.0
+    {
+        return Err(bad(format!(
+            "profiles of a disk source (radius {radius} MFP): the basis is fitted to point \
+             sources (pencil, or diffuse at a point)"
+        )));
+    }
     let mut data: Vec<TrainingProfile> = docs.iter().map(TrainingProfile::from_doc).collect();
     data.sort_by(|a, b| a.alpha.total_cmp(&b.alpha));
 
@@ -286,8 +300,8 @@ pub fn fit_basis(
     let (single, single_rep) =
         fit_mixture("single scattering p1(r; 1)", &pooled, k.min(4), 0, opts)?;
 
-    // Per-profile fits: diagnostics for the report (a failure is recorded
-    // there, not fatal: the smooth model does not start from them).
+    // Per-profile fits: the joint fit's starting point, and diagnostics for
+    // the report (non-convergence is recorded there; bad data is an error).
     let lenient = FitOptions {
         allow_nonconvergence: true,
         ..*opts
