@@ -23,7 +23,10 @@
 //! sqrt(1 − α)), the same as the basis BSSRDF's. Polynomials (rather than
 //! splines) keep evaluation to a few dozen multiply-adds and are globally
 //! smooth; outside the trained box the inputs are clamped to its edge
-//! (`clamped` is reported), so nothing is extrapolated.
+//! (`clamped` is reported). Inside the box, cells with too few contributing
+//! paths to fit ([`crate::fit::meta::MIN_PATHS`]: the low-albedo corners)
+//! have no data, and there the polynomials extrapolate from their
+//! neighbours (README, "Where the meta-model has no data").
 //!
 //! Density: K(·; d, α, ρ) = K(·; ρd, α, 1) with lengths divided by ρ
 //! ([`super::kernel::scale_for_density`]).
