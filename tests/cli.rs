@@ -518,6 +518,36 @@ fn compare_writes_metrics_curves_and_report() {
     let html = std::fs::read_to_string(d.join("report.html")).unwrap();
     assert!(html.contains("<table>") && !html.contains("src=\"main/"));
     assert!(d.join("report.md").exists());
+    // A scene without model methods: the reference curve has one point per
+    // budget (an empty method list re-rendered the reference per spp).
+    let d2 = d.join("refonly");
+    let scene = small_scene(
+        &d.join("r.toml"),
+        "stripes",
+        [0.3, 0.95],
+        "width",
+        "methods = []",
+    );
+    let o = bin()
+        .arg("compare")
+        .arg(&scene)
+        .args([
+            "--truth-paths",
+            "1e5",
+            "--spp-list",
+            "4,16",
+            "--paths-list",
+            "1e4",
+            "--out",
+        ])
+        .arg(&d2)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let doc = json(&d2.join("compare.json"));
+    let curves = doc["curves"]["curves"].as_array().unwrap();
+    assert_eq!(curves.len(), 1, "{curves:?}");
+    assert_eq!(curves[0]["points"].as_array().unwrap().len(), 1);
     std::fs::remove_dir_all(&d).unwrap();
 }
 

@@ -67,8 +67,12 @@ pub fn error_vs_time(
     paths: &[u64],
 ) -> Result<(Vec<Curve>, f64)> {
     check_budgets(truth_paths, spps, paths)?;
+    // The curves are of the first pass: render only that one (a density
+    // sweep's other passes were rendered and thrown away).
+    let mut one_pass = scene.clone();
+    one_pass.density_sweep.truncate(1);
     let first = |o: &RenderOptions| -> Result<Vec<(Target, Image, f64)>> {
-        let first_pass = render_scene(scene, o)?.swap_remove(0);
+        let first_pass = render_scene(&one_pass, o)?.swap_remove(0);
         Ok(first_pass
             .rendered
             .into_iter()
@@ -112,7 +116,9 @@ pub fn error_vs_time(
         .iter()
         .map(|m| Method::parse(m).map(Target::Model))
         .collect::<Result<_>>()?;
-    for &spp in spps {
+    // (No model methods: nothing to add; empty targets would mean "the
+    // scene's methods and the reference".)
+    for &spp in spps.iter().filter(|_| !methods.is_empty()) {
         let mut o = opts.clone();
         o.targets = methods.clone();
         o.spp = Some(spp);
