@@ -16,8 +16,10 @@
 //! * **incidence** — a diffuse light needs the diffuse-incidence basis, a
 //!   collimated one the collimated basis (only that one is loaded);
 //! * **range** — the (α, ρ·d) the scene can query against the range the
-//!   meta-model was trained on (outside it the meta-model clamps, and says
-//!   so; [`super::extend`] simulates and fits the missing range).
+//!   meta-model was trained on: albedos outside it are simulated and fitted
+//!   ([`super::extend`]); optical pair distances beyond it keep the kernel
+//!   shape of the largest trained distance, scaled with λ = ρd/2 + 1 (the
+//!   compare report states both).
 //!
 //! The reference walk only tallies the image region (paths are walked
 //! wherever they go: exits outside the image are not stored).

@@ -352,10 +352,41 @@ fn range_effect(
     // Albedos to three decimals in the text.
     let r = |v: f64| (v * 1e3).round() / 1e3;
     let (lo, hi) = (r(lo), r(hi));
-    let trained = crate::metamodel::meta::MetaModelFile::load(&opts.meta)?
-        .all
-        .alpha_range;
-    Ok(Some(match extension {
+    let model = crate::metamodel::meta::MetaModelFile::load(&opts.meta)?.all;
+    let trained = model.alpha_range;
+    let effect = range_albedo_effect(plan, opts, extension, (lo, hi), trained, r);
+    // The other axis of the range: the optical pair distances the image can
+    // ask for, against the trained ones (beyond, the kernel keeps the
+    // normalised shape of the largest trained distance, scaled with λ).
+    let d_max = model.ln_d_range[1].exp();
+    let reach = plan.max_optical_distance;
+    Ok(Some(Effect {
+        detail: format!(
+            "{}; optical pair distances reach ρd ≈ {:.3} MFP, trained up to {:.3}{}",
+            effect.detail,
+            reach,
+            d_max,
+            if reach > d_max {
+                ": beyond it the kernel keeps the shape of the largest trained distance, \
+                 scaled with λ = ρd/2 + 1"
+            } else {
+                ""
+            }
+        ),
+        ..effect
+    }))
+}
+
+/// The albedo half of [`range_effect`].
+fn range_albedo_effect(
+    plan: &super::analysis::Plan,
+    opts: &RenderOptions,
+    extension: Option<&super::extend::Extension>,
+    (lo, hi): (f64, f64),
+    trained: [f64; 2],
+    r: impl Fn(f64) -> f64,
+) -> Effect {
+    match extension {
         None if plan.homogeneous => Effect {
             name: "kernel simulation (missing albedo range)",
             needed: false,
@@ -414,7 +445,7 @@ fn range_effect(
                 )
             },
         },
-    }))
+    }
 }
 
 /// Renders the scene twice at the same settings, with the analysis on and
