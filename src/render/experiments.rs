@@ -245,9 +245,13 @@ fn variant_table(
             ) else {
                 continue;
             };
-            n += 1;
-            // Within 2 % of each other (relative) is a tie.
-            let better = if (a.rel_rmse - b.rel_rmse).abs() <= 0.02 * a.rel_rmse.max(b.rel_rmse) {
+            // Within 2 % of each other (relative) is a tie; an undefined
+            // error (a black reference) is no comparison and is not counted.
+            let comparable = a.rel_rmse.is_finite() && b.rel_rmse.is_finite();
+            n += usize::from(comparable);
+            let better = if !comparable {
+                "—"
+            } else if (a.rel_rmse - b.rel_rmse).abs() <= 0.02 * a.rel_rmse.max(b.rel_rmse) {
                 "tie"
             } else if b.rel_rmse < a.rel_rmse {
                 wins += 1;
@@ -516,4 +520,41 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
         ));
     }
     Ok(b)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(variant: &str, rel_rmse: f64) -> Row {
+        Row {
+            scene: "s".into(),
+            pass: "main".into(),
+            method: "learned",
+            variant: variant.into(),
+            sampling: "importance",
+            model: None,
+            basis: None,
+            spp: 4,
+            wall_s: 1.0,
+            rel_rmse,
+            rel_bias: 0.0,
+            rel_noise: 0.01,
+            resolution: 0.01,
+        }
+    }
+
+    #[test]
+    fn an_undefined_error_is_no_comparison() {
+        // A black reference makes the relative error NaN: not a win for
+        // either variant, and not counted.
+        let rows = [row("", f64::NAN), row("+x", 0.1)];
+        let (Block::Table { rows: table, .. }, summary) =
+            variant_table(&rows, &["learned"], "+x", ["default", "x"])
+        else {
+            panic!("a table")
+        };
+        assert_eq!(table[0].last().unwrap(), "—");
+        assert!(summary.contains("0 of 0"), "{summary}");
+    }
 }
