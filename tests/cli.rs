@@ -330,7 +330,9 @@ fn render_reference_shards_merge_and_bad_input() {
         .arg(d.join("bad.json"))
         .output()
         .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && !d.join("bad.json").exists());
+    assert!(err.contains("reference.tally.json"), "{err}");
     // Refused, naming the file and the key, nothing written:
     let refused = |args: &[&str], needles: &[&str]| {
         let out = d.join("never");

@@ -1,6 +1,7 @@
 //! Bitwise determinism: 1 vs N threads, shards merged vs unsharded (both
-//! engines), and the lane walk's integer tallies vs the scalar walk's
-//! (statistically; they round differently).
+//! engines), and shipped profiles re-simulated from their recorded
+//! configuration. (The lane walk against the scalar walk, statistically —
+//! they round differently — is `forward::simd`'s `agrees_with_scalar_walk`.)
 
 use svkernel::forward::medium::{Medium, Source};
 use svkernel::forward::profile::{self, DEFAULT_MAX_EVENTS, Engine, ProfileConfig, ProfileDoc};

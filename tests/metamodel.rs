@@ -49,6 +49,7 @@ fn learned_kernels_beat_the_manual_kernel_where_it_matters() {
     for class in [VertexClass::All, VertexClass::Last] {
         let cs = cells(&doc, class);
         let (mut wins, mut n, mut sum_meta, mut sum_manual) = (0, 0, 0.0, 0.0);
+        let mut ceilings = 0;
         for c in cs.iter().step_by(7) {
             let q = f.eval(class, c.d, c.alpha, 1.0);
             let pc = fit_gmm("test", &c.hist, 3, &FitOptions::default()).ok();
@@ -60,9 +61,12 @@ fn learned_kernels_beat_the_manual_kernel_where_it_matters() {
             // The per-configuration fit is the meta-model's ceiling: close to it.
             if let Some(p) = row.per_config {
                 assert!(row.meta < p + 0.02, "{row:?}");
+                ceilings += 1;
             }
         }
         assert!(n >= 8);
+        // The ceiling check ran (the per-configuration fits converge).
+        assert!(ceilings * 2 >= n, "{class:?}: {ceilings} ceilings of {n}");
         assert!(
             sum_meta < 0.5 * sum_manual,
             "{class:?}: {sum_meta} vs {sum_manual}"

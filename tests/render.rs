@@ -84,6 +84,11 @@ half_width = 2.0
     let full = render_scene(&scene, &full).unwrap();
     let skips = render_scene(&scene, &options(all_models(), 16, 1, "constant")).unwrap();
     let point = &full[0].rendered[0].image;
+    assert_eq!(full[0].rendered.len(), skips[0].rendered.len());
+    assert!(
+        point.mean.iter().any(|&v| v > 0.0),
+        "a black image proves nothing"
+    );
     for (f, s) in full[0].rendered.iter().zip(&skips[0].rendered) {
         assert_eq!(f.target, s.target);
         for ((a, b), c) in f.image.mean.iter().zip(&point.mean).zip(&s.image.mean) {
@@ -121,6 +126,7 @@ density = { pattern = "stripes", values = [2.0, 2.0], width = 0.5 }
         ..options(targets, 8, 20_000, "grey3")
     };
     let full = render_scene(&scene, &full).unwrap();
+    assert_eq!(skips[0].rendered.len(), full[0].rendered.len());
     for (s, f) in skips[0].rendered.iter().zip(&full[0].rendered) {
         let name = f.target.name();
         assert_eq!((s.image.channels, f.image.channels), (1, 3), "{name}");

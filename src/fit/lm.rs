@@ -174,7 +174,12 @@ where
     for c in 0..analytic.ncols() {
         let scale = numeric.column(c).norm().max(1e-300);
         let diff = (analytic.column(c) - numeric.column(c)).norm();
-        worst = worst.max(diff / scale);
+        // NaN (an analytic or numeric entry that is not a number) must
+        // show, not be dropped by f64::max.
+        let rel = diff / scale;
+        if !(rel <= worst) {
+            worst = rel;
+        }
     }
     worst
 }

@@ -296,9 +296,17 @@ mod tests {
         // Two batches: the checkpoint after the first (next chunk 32) stays.
         let full = run(&key, (0, 64), Seen::default(), chunk, &opts).unwrap();
         assert_eq!(full.tally.0, (0..64).collect::<Vec<_>>());
-        // Resumed over the same range: the remaining chunks only, once each.
-        let resumed = run(&key, (0, 64), Seen::default(), chunk, &opts).unwrap();
+        // Resumed over the same range: the remaining chunks only, once each
+        // (counted: a resume that silently restarted would give the same
+        // tally).
+        let calls = std::sync::atomic::AtomicU64::new(0);
+        let counted = |c: u64| {
+            calls.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            chunk(c)
+        };
+        let resumed = run(&key, (0, 64), Seen::default(), counted, &opts).unwrap();
         assert_eq!(resumed.tally.0, full.tally.0);
+        assert_eq!(calls.into_inner(), 32, "chunks run again on resume");
         // Another shard layout whose range contains the checkpoint's next
         // chunk is refused: it would claim chunks 10..32 that it never ran.
         let err = run(&key, (10, 64), Seen::default(), chunk, &opts)

@@ -557,8 +557,18 @@ fn build_map(
                 ));
             }
         };
-        // Named by the scene file and key; the message names the map file.
-        return loaded.map_err(|e| bad(".file", e.to_string()));
+        // Named by the scene file and key, and the map file.
+        return loaded.map_err(|e| {
+            let (msg, name) = (e.to_string(), path.display().to_string());
+            bad(
+                ".file",
+                if msg.contains(&name) {
+                    msg
+                } else {
+                    format!("{name}: {msg}")
+                },
+            )
+        });
     }
     let pattern = raw.pattern.as_deref().unwrap_or_default();
     let [nx, ny] = raw.size.unwrap_or([default_size, default_size]);
