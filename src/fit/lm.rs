@@ -177,7 +177,7 @@ where
         // NaN (an analytic or numeric entry that is not a number) must
         // show, not be dropped by f64::max.
         let rel = diff / scale;
-        if !(rel <= worst) {
+        if rel.is_nan() || rel > worst {
             worst = rel;
         }
     }
