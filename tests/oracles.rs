@@ -47,7 +47,7 @@ fn check(what: &str, est: f64, stderr: f64, oracle: f64, accuracy: f64) {
 /// Paths for a target stderr at R_d ≈ rd (binomial), clamped to a range.
 fn paths_for(rd: f64, rel: f64, scale: u64) -> u64 {
     let n = (1.0 - rd) / (rd * rel * rel);
-    (n as u64).clamp(50_000, 4_000_000) * scale
+    (n as u64).clamp(200_000, 16_000_000) * scale
 }
 
 fn rd_table(
@@ -65,7 +65,7 @@ fn rd_table(
         let d = simulate(
             m,
             Source::Pencil,
-            paths_for(oracle, 0.01, scale),
+            paths_for(oracle, 0.003, scale),
             engine,
             DEFAULT_MAX_EVENTS,
         );
@@ -161,7 +161,7 @@ fn conservative_medium_energy_balance() {
     // α = 1: everything that enters comes back out, up to the truncated
     // fraction, which bounds the bias (walk.rs "Termination at α = 1").
     let m = Medium::new(1.0, 0.3, 1.5, 1.0, None).unwrap();
-    let d = simulate(m, Source::Pencil, 10_000, Engine::Lanes, DEFAULT_MAX_EVENTS);
+    let d = simulate(m, Source::Pencil, 100_000, Engine::Lanes, DEFAULT_MAX_EVENTS);
     assert_eq!(d.absorbed, 0.0);
     // P(n > N) decays like N^{-1/2}: about 0.4 % of paths reach 1e6 events.
     assert!(d.truncated < 0.01, "truncated {}", d.truncated);
