@@ -161,7 +161,13 @@ fn conservative_medium_energy_balance() {
     // α = 1: everything that enters comes back out, up to the truncated
     // fraction, which bounds the bias (walk.rs "Termination at α = 1").
     let m = Medium::new(1.0, 0.3, 1.5, 1.0, None).unwrap();
-    let d = simulate(m, Source::Pencil, 100_000, Engine::Lanes, DEFAULT_MAX_EVENTS);
+    let d = simulate(
+        m,
+        Source::Pencil,
+        100_000,
+        Engine::Lanes,
+        DEFAULT_MAX_EVENTS,
+    );
     assert_eq!(d.absorbed, 0.0);
     // P(n > N) decays like N^{-1/2}: about 0.4 % of paths reach 1e6 events.
     assert!(d.truncated < 0.01, "truncated {}", d.truncated);

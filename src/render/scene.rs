@@ -315,10 +315,16 @@ impl Scene {
         let dir = path.parent().unwrap_or(Path::new("."));
         let albedo = build_map(&raw.albedo, "albedo", raw.texel, default_size, dir, path)?;
         for (c, m) in albedo.iter().enumerate() {
-            if let Some(v) = m.values.iter().find(|v| !(0.0..=1.0).contains(*v)) {
+            if let Some(k) = m.values.iter().position(|v| !(0.0..=1.0).contains(v)) {
                 return Err(bad(
                     "albedo",
-                    format!("value {v} (channel {c}) must be in [0, 1]"),
+                    format!(
+                        "value {} at texel (row {}, column {}) of channel {c}{} must be in [0, 1]",
+                        m.values[k],
+                        k / m.nx,
+                        k % m.nx,
+                        from_file(&raw.albedo, c)
+                    ),
                 ));
             }
         }
@@ -330,8 +336,17 @@ impl Scene {
                     return Err(bad("density", "must have one channel".into()));
                 }
                 let m = maps.remove(0);
-                if let Some(v) = m.values.iter().find(|v| !(v.is_finite() && **v > 0.0)) {
-                    return Err(bad("density", format!("value {v} must be finite and > 0")));
+                if let Some(k) = m.values.iter().position(|v| !(v.is_finite() && *v > 0.0)) {
+                    return Err(bad(
+                        "density",
+                        format!(
+                            "value {} at texel (row {}, column {}){} must be finite and > 0",
+                            m.values[k],
+                            k / m.nx,
+                            k % m.nx,
+                            from_file(d, 0)
+                        ),
+                    ));
                 }
                 Some(m)
             }
@@ -385,6 +400,15 @@ impl Scene {
                     == (self.albedo[0].nx, self.albedo[0].ny, &self.albedo[0].values)
             })
     }
+}
+
+/// " in FILE" when channel `c` of the map comes from a file, else "".
+fn from_file(raw: &RawMap, c: usize) -> String {
+    let file = raw
+        .file
+        .as_ref()
+        .or_else(|| raw.channels.as_ref()?.get(c)?.file.as_ref());
+    file.map_or(String::new(), |f| format!(" in {}", f.display()))
 }
 
 /// The values of a map: one per channel.
