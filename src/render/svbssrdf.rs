@@ -1029,6 +1029,15 @@ mod tests {
                             assert!(s.is_finite() && s >= 0.0, "{eps} {d}: {s}");
                             // S = O(ε): single scattering carries α_i, the rest α_iα_e/α_t²·Rₘ(α_t).
                             assert!(s <= 1e3 * eps.max(1e-300) / d.max(1e-6), "{eps} {d}: {s}");
+                            if map.nx == 1 {
+                                // A uniform ε: the split form is the homogeneous
+                                // profile at ε, constant included.
+                                let want = t.exitance(d, eps, 1.0);
+                                assert!(
+                                    (s - want).abs() <= 1e-9 * want,
+                                    "{eps} {d}: {s} vs homogeneous {want}"
+                                );
+                            }
                         }
                     }
                 }
