@@ -597,12 +597,17 @@ fn albedo_grid(scene: &Scene) -> Result<Vec<crate::forward::maps::TexelMap>> {
 }
 
 /// Writes the pass's material as texel arrays for external renderers
-/// (`tools/mitsuba_check.py`): `albedo.npy` `(ny, nx)` or `(ny, nx, 3)` and
+/// (`tools/mitsuba_check.py`): the albedo channels `a` ([`albedo_grid`]) as
+/// `albedo.npy` `(ny, nx)` or `(ny, nx, 3)` and
 /// `density.npy` `(ny, nx)` (a constant density as a 1 × 1 array), row 0 at
 /// +y, column 0 at −x, texel sizes (`texel`, and `albedo_texel` for the
 /// albedo array) and conventions in `render.json`.
-fn write_maps(scene: &Scene, pass: &Pass, dir: &Path) -> Result<()> {
-    let a = albedo_grid(scene)?;
+fn write_maps(
+    scene: &Scene,
+    a: &[crate::forward::maps::TexelMap],
+    pass: &Pass,
+    dir: &Path,
+) -> Result<()> {
     let (nx, ny) = (a[0].nx, a[0].ny);
     let albedo =
         ndarray::Array3::from_shape_fn((ny, nx, a.len()), |(i, j, c)| a[c].values[i * nx + j]);
@@ -621,10 +626,12 @@ pub fn write_outputs(
     opts: &RenderOptions,
     passes: &[Pass],
 ) -> Result<serde_json::Value> {
+    // The albedo as external renderers get it: the same for every pass.
+    let albedo = albedo_grid(scene)?;
     let mut pass_docs = Vec::new();
     for pass in passes {
         let dir = opts.out.join(tag_or(&pass.tag));
-        write_maps(scene, pass, &dir)?;
+        write_maps(scene, &albedo, pass, &dir)?;
         let reference = pass
             .rendered
             .iter()
@@ -692,7 +699,7 @@ pub fn write_outputs(
         "eta": scene.eta,
         "g": scene.g,
         "texel": scene.texel,
-        "albedo_texel": albedo_grid(scene)?[0].texel,
+        "albedo_texel": albedo[0].texel,
         "light": {
             "kind": format!("{:?}", scene.light).to_lowercase(),
             "radius": scene.light_radius,

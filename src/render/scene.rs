@@ -319,10 +319,8 @@ impl Scene {
                 return Err(bad(
                     "albedo",
                     format!(
-                        "value {} at texel (row {}, column {}) of channel {c}{} must be in [0, 1]",
-                        m.values[k],
-                        k / m.nx,
-                        k % m.nx,
+                        "{} of channel {c}{} must be in [0, 1]",
+                        texel_value(m, k),
                         from_file(&raw.albedo, c)
                     ),
                 ));
@@ -340,10 +338,8 @@ impl Scene {
                     return Err(bad(
                         "density",
                         format!(
-                            "value {} at texel (row {}, column {}){} must be finite and > 0",
-                            m.values[k],
-                            k / m.nx,
-                            k % m.nx,
+                            "{}{} must be finite and > 0",
+                            texel_value(&m, k),
                             from_file(d, 0)
                         ),
                     ));
@@ -400,6 +396,16 @@ impl Scene {
                     == (self.albedo[0].nx, self.albedo[0].ny, &self.albedo[0].values)
             })
     }
+}
+
+/// "value V at texel (row i, column j)" of the `k`-th value of `m`.
+fn texel_value(m: &TexelMap, k: usize) -> String {
+    format!(
+        "value {} at texel (row {}, column {})",
+        m.values[k],
+        k / m.nx,
+        k % m.nx
+    )
 }
 
 /// " in FILE" when channel `c` of the map comes from a file, else "".
@@ -499,16 +505,14 @@ fn build_map(
         ("size", raw.size.is_some()),
     ];
     if let Some((k, _)) = given.iter().find(|(k, on)| *on && !takes.contains(k)) {
+        let takes = if takes.is_empty() {
+            "no other key".to_string()
+        } else {
+            takes.join(", ")
+        };
         return Err(bad(
             &format!(".{k}"),
-            format!("not a key of {what} (it takes: {})", {
-                let t = takes.join(", ");
-                if t.is_empty() {
-                    "no other key".to_string()
-                } else {
-                    t
-                }
-            }),
+            format!("not a key of {what} (it takes: {takes})"),
         ));
     }
     if let Some(ch) = &raw.channels {
