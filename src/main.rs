@@ -10,6 +10,10 @@ use svkernel::forward::medium::{Medium, Source};
 use svkernel::forward::profile::{self, DEFAULT_MAX_EVENTS, Engine, ProfileConfig, ProfileDoc};
 use svkernel::forward::runner::{RunOptions, Shard, chunk_range};
 use svkernel::forward::tally::RadialBins;
+use svkernel::jobs::shipped::{Models, Shipped, cache_dir};
+use svkernel::jobs::store::FileCheckpoint;
+use svkernel::metamodel::basis::BasisModel;
+use svkernel::metamodel::meta::MetaModelFile;
 use svkernel::provenance::Provenance;
 
 #[derive(Parser)]
@@ -47,9 +51,9 @@ enum Command {
         /// Comma-separated radii in MFP.
         #[arg(long, value_delimiter = ',', default_value = "0.01,0.1,1,10")]
         radii: Vec<f64>,
-        /// Basis model file.
-        #[arg(long, default_value = DEFAULT_BASIS)]
-        model: PathBuf,
+        /// Basis model file (default: $SVKERNEL_BASIS, else the built-in one).
+        #[arg(long)]
+        model: Option<PathBuf>,
         /// Print JSON (the only output format; kept for scripts).
         #[arg(long)]
         json: bool,
@@ -67,11 +71,12 @@ enum Command {
         /// all | first | last
         #[arg(long, default_value = "all")]
         vertices: String,
-        /// The fixed manual kernel (design §4) instead of the meta-model.
+        /// The fixed manual kernel (docs/design.md §4) instead of the meta-model.
         #[arg(long)]
         manual: bool,
-        #[arg(long, default_value = DEFAULT_META)]
-        model: PathBuf,
+        /// Meta-model file (default: $SVKERNEL_MODEL, else the built-in one).
+        #[arg(long)]
+        model: Option<PathBuf>,
         /// Print JSON (the only output format; kept for scripts).
         #[arg(long)]
         json: bool,
@@ -110,6 +115,8 @@ enum Command {
         sampling: String,
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        #[command(flatten)]
+        models: ModelArgs,
         #[arg(long, default_value = "out/compare")]
         out: PathBuf,
     },
@@ -117,33 +124,7 @@ enum Command {
     /// plain, vertex kernels vs point albedos, two passes, sampling, learned
     /// vs manual, and error vs meta-model complexity with --models): tables
     /// in experiments.html (self-contained), experiments.md and .json.
-    Experiments {
-        /// Scene files (default: the six canonical scenes).
-        #[arg(
-            long,
-            value_delimiter = ',',
-            default_value = "scenes/stripes.toml,scenes/checker.toml,scenes/complex.toml,scenes/color.toml,scenes/density.toml,scenes/features.toml"
-        )]
-        scenes: Vec<PathBuf>,
-        /// Samples per pixel of every model render.
-        #[arg(long, default_value_t = 256)]
-        spp: u32,
-        /// Reference paths per scene and pass.
-        #[arg(long, default_value = "1e7", value_parser = parse_count)]
-        paths: u64,
-        /// Meta-model files rendered with `learned` on stripes and checker
-        /// (error vs K and polynomial degrees; tools/kernel_complexity.sh).
-        #[arg(long, value_delimiter = ',')]
-        models: Vec<PathBuf>,
-        /// Basis model files rendered with `learned` on stripes and checker
-        /// (error vs exponential terms; tools/kernel_complexity.sh).
-        #[arg(long, value_delimiter = ',')]
-        bases: Vec<PathBuf>,
-        #[arg(long, default_value_t = 1)]
-        seed: u64,
-        #[arg(long, default_value = "out/experiments")]
-        out: PathBuf,
-    },
+    Experiments(ExperimentsArgs),
     /// End-to-end demo on shipped data.
     Demo {
         #[arg(long, default_value = "out/demo")]
@@ -151,13 +132,82 @@ enum Command {
         /// Paths of the demo simulation.
         #[arg(long, default_value = "2e6", value_parser = parse_count)]
         paths: u64,
+        #[command(flatten)]
+        models: ModelArgs,
     },
+    /// Print a built-in scene's TOML (a starting point for your own scene).
+    Scene {
+        /// stripes, checker, complex, color, density or features.
+        #[arg(value_parser = clap::builder::PossibleValuesParser::new(["stripes", "checker", "complex", "color", "density", "features"]))]
+        name: String,
+    },
+}
+
+/// Where the models come from: a flag, else its environment variable, else
+/// the copy built into svkernel.
+#[derive(Args, Clone, Debug)]
+struct ModelArgs {
+    /// Basis BSSRDF for collimated lights [default: $SVKERNEL_BASIS, else built in].
+    #[arg(long)]
+    basis: Option<PathBuf>,
+    /// Basis BSSRDF for diffuse lights [default: $SVKERNEL_BASIS_DIFFUSE, else built in].
+    #[arg(long)]
+    basis_diffuse: Option<PathBuf>,
+    /// Kernel meta-model [default: $SVKERNEL_MODEL, else built in].
+    #[arg(long)]
+    model: Option<PathBuf>,
+    /// Cache of meta-model extensions [default: $SVKERNEL_CACHE, else the
+    /// platform's cache folder, e.g. ~/.cache/svkernel].
+    #[arg(long)]
+    cache: Option<PathBuf>,
+}
+
+impl ModelArgs {
+    fn load(&self) -> Result<Models> {
+        Ok(Models::find(
+            self.basis.as_deref(),
+            self.basis_diffuse.as_deref(),
+            self.model.as_deref(),
+        )?)
+    }
+}
+
+/// `svkernel experiments`.
+#[derive(Args)]
+struct ExperimentsArgs {
+    /// Scene files (default: the six canonical scenes).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "stripes,checker,complex,color,density,features"
+    )]
+    scenes: Vec<PathBuf>,
+    /// Samples per pixel of every model render.
+    #[arg(long, default_value_t = 256)]
+    spp: u32,
+    /// Reference paths per scene and pass.
+    #[arg(long, default_value = "1e7", value_parser = parse_count)]
+    paths: u64,
+    /// Meta-model files rendered with `learned` on stripes and checker
+    /// (error vs K and polynomial degrees; tools/kernel_complexity.sh).
+    #[arg(long, value_delimiter = ',')]
+    models: Vec<PathBuf>,
+    /// Basis model files rendered with `learned` on stripes and checker
+    /// (error vs exponential terms; tools/kernel_complexity.sh).
+    #[arg(long, value_delimiter = ',')]
+    bases: Vec<PathBuf>,
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    #[command(flatten)]
+    model_args: ModelArgs,
+    #[arg(long, default_value = "out/experiments")]
+    out: PathBuf,
 }
 
 /// `svkernel render SCENE.toml`.
 #[derive(Args)]
 struct RenderArgs {
-    /// Scene file (TOML; schema in the README).
+    /// Scene file (TOML; schema in docs/scenes.md), or a built-in scene's name.
     scene: PathBuf,
     /// Methods to render (comma-separated or repeated): reference, point,
     /// factorized, line, ellipse, manual, learned. Default: the scene's
@@ -182,9 +232,6 @@ struct RenderArgs {
     /// instead of simulating and fitting the missing range.
     #[arg(long)]
     no_extend: bool,
-    /// Cache of meta-model extensions (content-hashed, reused).
-    #[arg(long, default_value = "out/cache")]
-    cache: PathBuf,
     /// Kernel-method variant: not density-scaled aggregation.
     #[arg(long)]
     plain: bool,
@@ -213,25 +260,17 @@ struct RenderArgs {
     /// Continue the reference from its checkpoint.
     #[arg(long)]
     resume: bool,
-    #[arg(long, default_value = DEFAULT_BASIS)]
-    basis: PathBuf,
-    #[arg(long, default_value = DEFAULT_BASIS_DIFFUSE)]
-    basis_diffuse: PathBuf,
-    #[arg(long, default_value = DEFAULT_META)]
-    model: PathBuf,
+    #[command(flatten)]
+    models: ModelArgs,
     /// Output directory.
     #[arg(long, default_value = "out/render")]
     out: PathBuf,
 }
 
-/// The shipped basis model.
-const DEFAULT_BASIS: &str = svkernel::demo::SHIPPED_BASIS;
-/// The shipped diffuse-incidence basis model.
-const DEFAULT_BASIS_DIFFUSE: &str = svkernel::demo::SHIPPED_BASIS_DIFFUSE;
-const DEFAULT_KERNELS: &str = svkernel::demo::SHIPPED_KERNELS;
-const DEFAULT_META: &str = svkernel::demo::SHIPPED_META;
-/// The shipped profiles of the default medium.
+/// The profiles of the default medium in a checkout of the repository.
 const DEFAULT_PROFILES: &str = "data/profiles/eta1.5_g0.3_pencil";
+/// The kernel tallies the shipped meta-model was fitted to (in a checkout).
+const DEFAULT_KERNELS: &str = "data/kernels/eta1.5_g0.3_pencil.json";
 
 #[derive(Subcommand)]
 enum Fit {
@@ -239,7 +278,8 @@ enum Fit {
     Profiles {
         #[arg(long = "in", default_value = DEFAULT_PROFILES)]
         input: PathBuf,
-        #[arg(long, default_value = DEFAULT_BASIS)]
+        /// The fitted model (the shipped one is never replaced unless named here).
+        #[arg(long, default_value = "out/fit/basis.json")]
         out: PathBuf,
         /// Directory for report.json and the plots (default: OUT's directory/basis_report).
         #[arg(long)]
@@ -270,7 +310,8 @@ enum Fit {
     Kernels {
         #[arg(long = "in", default_value = DEFAULT_KERNELS)]
         input: PathBuf,
-        #[arg(long, default_value = DEFAULT_META)]
+        /// The fitted meta-model (the shipped one is never replaced unless named here).
+        #[arg(long, default_value = "out/fit/metamodel.json")]
         out: PathBuf,
         /// Directory for report.json (default: OUT's directory/metamodel_report)
         #[arg(long)]
@@ -288,8 +329,9 @@ enum Fit {
     ExportKernels {
         #[arg(long = "in", default_value = DEFAULT_KERNELS)]
         input: PathBuf,
-        #[arg(long, default_value = DEFAULT_META)]
-        model: PathBuf,
+        /// Meta-model [default: $SVKERNEL_MODEL, else built in].
+        #[arg(long)]
+        model: Option<PathBuf>,
         /// all | last
         #[arg(long, default_value = "all")]
         vertices: String,
@@ -303,8 +345,9 @@ enum Fit {
     /// between x_i and x_e), measured with delta tracking, against the
     /// density-scaled homogeneous meta-model kernel.
     DensityStep {
-        #[arg(long, default_value = DEFAULT_META)]
-        model: PathBuf,
+        /// Meta-model [default: $SVKERNEL_MODEL, else built in].
+        #[arg(long)]
+        model: Option<PathBuf>,
         #[arg(long, value_delimiter = ',', default_value = "0.6,0.9,0.99")]
         albedos: Vec<f64>,
         #[arg(long, value_delimiter = ',', default_value = "0.5,1,2,4")]
@@ -319,8 +362,9 @@ enum Fit {
     },
     /// Accuracy of a basis model against a directory of (fresh) profiles.
     Check {
-        #[arg(long, default_value = DEFAULT_BASIS)]
-        model: PathBuf,
+        /// Basis model [default: $SVKERNEL_BASIS, else built in].
+        #[arg(long)]
+        model: Option<PathBuf>,
         #[arg(long = "in")]
         input: PathBuf,
         /// Also write the rows as JSON.
@@ -385,7 +429,7 @@ impl RunArgs {
     fn options(&self) -> Result<(Option<Shard>, RunOptions)> {
         let shard = self.shard.as_deref().map(Shard::parse).transpose()?;
         let opts = RunOptions {
-            checkpoint: Some(checkpoint_path(&self.out)),
+            checkpoint: Some(FileCheckpoint::arc(checkpoint_path(&self.out))),
             checkpoint_every: checkpoint_interval(self.checkpoint_every)?,
             resume: self.resume,
             progress: std::io::stderr().is_terminal(),
@@ -498,7 +542,7 @@ fn simulate_kernels(a: KernelArgs) -> Result<()> {
     let (tally, wall_s) = config.run(shard, &opts)?;
     let chunks = vec![chunk_range(config.paths, shard)];
     let doc = KernelDoc::new(config, shard, chunks, tally, wall_s, Provenance::current());
-    svkernel::io::write_json_compact_atomic(&a.run.out, &doc)?;
+    svkernel::jobs::store::write_json_compact_atomic(&a.run.out, &doc)?;
     remove_checkpoint(&a.run.out)?;
     print_kernel_summary(&doc);
     Ok(())
@@ -560,9 +604,9 @@ fn write_doc(doc: &ProfileDoc, out: &std::path::Path, npy: bool) -> Result<()> {
             1 => b.edges[k + 1],
             _ => cols[j - 2][k],
         });
-        svkernel::io::write_npy_atomic(&out.with_extension("npy"), &arr)?;
+        svkernel::jobs::store::write_npy_atomic(&out.with_extension("npy"), &arr)?;
     }
-    svkernel::io::write_json_atomic(out, doc)?;
+    svkernel::jobs::store::write_json_atomic(out, doc)?;
     Ok(())
 }
 
@@ -601,9 +645,9 @@ fn merge(inputs: Vec<PathBuf>, out: PathBuf) -> Result<()> {
     struct Head {
         format: String,
     }
-    let head: Head = svkernel::io::read_json(&inputs[0])?;
+    let head: Head = svkernel::jobs::store::read_json(&inputs[0])?;
     if head.format == svkernel::render::reference::REFERENCE_FORMAT {
-        svkernel::render::job::merge_reference(&inputs, &out)?;
+        svkernel::jobs::render::merge_reference(&inputs, &out)?;
         println!(
             "merged {} reference tallies into {}",
             inputs.len(),
@@ -617,7 +661,7 @@ fn merge(inputs: Vec<PathBuf>, out: PathBuf) -> Result<()> {
             .map(|p| KernelDoc::load(&p).map(|d| (p, d)))
             .collect::<svkernel::Result<Vec<_>>>()?;
         let doc = kernel::merge(&docs, Provenance::current())?;
-        svkernel::io::write_json_compact_atomic(&out, &doc)?;
+        svkernel::jobs::store::write_json_compact_atomic(&out, &doc)?;
         print_kernel_summary(&doc);
         return Ok(());
     }
@@ -631,8 +675,9 @@ fn merge(inputs: Vec<PathBuf>, out: PathBuf) -> Result<()> {
     Ok(())
 }
 
-fn demo(out: PathBuf, paths: u64) -> Result<()> {
-    let r = svkernel::demo::run(&out, paths, std::io::stderr().is_terminal())?;
+fn demo(out: PathBuf, paths: u64, models: ModelArgs) -> Result<()> {
+    let models = models.load()?;
+    let r = svkernel::jobs::demo::run(&out, paths, &models, true)?;
     let d = &r.doc;
     println!("svkernel demo — default medium (η = 1.5, g = 0.3), α = 0.9, pencil beam");
     print_summary(d);
@@ -666,9 +711,9 @@ fn demo(out: PathBuf, paths: u64) -> Result<()> {
     println!("wrote {} and {}", r.json.display(), r.plot.display());
     println!(
         "comparing {} (64 spp importance sampling, reference 4e6 paths, 64² pixels, error-vs-time curves):",
-        svkernel::demo::DEMO_SCENES.join(", ")
+        svkernel::jobs::demo::DEMO_SCENES.join(", ")
     );
-    let scenes = svkernel::demo::compare_scenes(&out, std::io::stderr().is_terminal())?;
+    let scenes = svkernel::jobs::demo::compare_scenes(&out, &models, true)?;
     for (name, c) in &scenes {
         print_comparison(name, &c.doc);
     }
@@ -680,7 +725,7 @@ fn demo(out: PathBuf, paths: u64) -> Result<()> {
 }
 
 fn fit(f: Fit) -> Result<()> {
-    use svkernel::fit::report;
+    use svkernel::jobs::fit_profiles as report;
     match f {
         Fit::Profiles {
             input,
@@ -736,7 +781,7 @@ fn fit(f: Fit) -> Result<()> {
                 bail!("no profiles in {}", input.display());
             };
             let v = report::export_problem(doc, components)?;
-            svkernel::io::write_json_atomic(&out, &v)?;
+            svkernel::jobs::store::write_json_atomic(&out, &v)?;
             println!(
                 "exported α = {} ({} bins, χ² = {}) to {}",
                 doc.config.medium.alpha,
@@ -752,7 +797,7 @@ fn fit(f: Fit) -> Result<()> {
             components,
             degree,
         } => {
-            use svkernel::fit::kernel_report;
+            use svkernel::jobs::fit_kernels;
             if !(1..=5).contains(&components) {
                 bail!("invalid --components = {components}: must be in 1..=5");
             }
@@ -767,8 +812,8 @@ fn fit(f: Fit) -> Result<()> {
                     .unwrap_or(std::path::Path::new("."))
                     .join("metamodel_report")
             });
-            let r = kernel_report::fit_kernels(&input, &out, &dir, components, (dx, dy))?;
-            println!("{}", kernel_report::aggregation_table(&r.aggregation));
+            let r = fit_kernels::fit_kernels(&input, &out, &dir, components, (dx, dy), true)?;
+            println!("{}", fit_kernels::aggregation_table(&r.aggregation));
             for j in &r.joint {
                 println!(
                     "{}: {} after {} evaluations, χ²/dof = {:.3}, {:.1} s",
@@ -795,7 +840,7 @@ fn fit(f: Fit) -> Result<()> {
                 bail!("invalid --vertices first: the first-vertex kernel is exact (no fit)");
             }
             let doc = KernelDoc::load(&input)?;
-            let f = svkernel::metamodel::meta::MetaModelFile::load(&model)?;
+            let (f, _): (MetaModelFile, _) = Shipped::Meta.load(model.as_deref())?;
             let all = svkernel::fit::meta::cells(&doc, class);
             let step = (all.len() / cells.max(1)).max(1);
             let picked: Vec<_> = all.into_iter().step_by(step).take(cells.max(1)).collect();
@@ -805,7 +850,7 @@ fn fit(f: Fit) -> Result<()> {
                 &f.last
             };
             let v = svkernel::fit::meta::export_problem(&picked, m, 8)?;
-            svkernel::io::write_json_compact_atomic(&out, &v)?;
+            svkernel::jobs::store::write_json_compact_atomic(&out, &v)?;
             println!(
                 "exported {} cells ({} residuals, χ² = {}) to {}",
                 picked.len(),
@@ -822,14 +867,14 @@ fn fit(f: Fit) -> Result<()> {
             seed,
             out,
         } => {
-            use svkernel::fit::kernel_report::density_step_experiment;
+            use svkernel::jobs::fit_kernels::density_step_experiment;
             for a in &albedos {
                 Medium::default_with_albedo(*a)?;
             }
             if let Some(d) = distances.iter().find(|d| !(**d > 0.0 && d.is_finite())) {
                 bail!("invalid --distances: {d} must be finite and > 0");
             }
-            let f = svkernel::metamodel::meta::MetaModelFile::load(&model)?;
+            let (f, _): (MetaModelFile, _) = Shipped::Meta.load(model.as_deref())?;
             let start = std::time::Instant::now();
             let rows = density_step_experiment(&f, &albedos, &distances, paths, seed);
             println!(
@@ -845,15 +890,15 @@ fn fit(f: Fit) -> Result<()> {
             }
             println!("{:.1} s", start.elapsed().as_secs_f64());
             if let Some(out) = out {
-                svkernel::io::write_json_atomic(&out, &rows)?;
+                svkernel::jobs::store::write_json_atomic(&out, &rows)?;
             }
         }
         Fit::Check { model, input, out } => {
-            let m = svkernel::metamodel::basis::BasisModel::load(&model)?;
+            let (m, _): (BasisModel, _) = Shipped::Basis.load(model.as_deref())?;
             let rows = report::check(&m, &input)?;
             println!("{}", report::markdown_table(&rows));
             if let Some(out) = out {
-                svkernel::io::write_json_atomic(&out, &rows)?;
+                svkernel::jobs::store::write_json_atomic(&out, &rows)?;
             }
         }
     }
@@ -866,7 +911,7 @@ fn kernel_query(
     density: f64,
     vertices: &str,
     manual: bool,
-    model: &std::path::Path,
+    model: Option<&std::path::Path>,
 ) -> Result<()> {
     use svkernel::forward::kernel::VertexClass;
     if !(d >= 0.0 && d.is_finite()) {
@@ -886,9 +931,9 @@ fn kernel_query(
             "manual".to_string(),
         )
     } else {
-        let f = svkernel::metamodel::meta::MetaModelFile::load(model)?;
+        let (f, origin): (MetaModelFile, _) = Shipped::Meta.load(model)?;
         let q = f.eval(class, d, albedo, density);
-        (q.gmm, q.clamped, model.display().to_string())
+        (q.gmm, q.clamped, origin.display().to_string())
     };
     let v = serde_json::json!({
         "d": d,
@@ -903,14 +948,14 @@ fn kernel_query(
     Ok(())
 }
 
-fn profile_query(albedo: f64, radii: &[f64], model: &std::path::Path) -> Result<()> {
+fn profile_query(albedo: f64, radii: &[f64], model: Option<&std::path::Path>) -> Result<()> {
     if !(0.0..=1.0).contains(&albedo) {
         bail!("invalid --albedo = {albedo}: must be in [0, 1]");
     }
     if let Some(r) = radii.iter().find(|r| !(**r >= 0.0 && r.is_finite())) {
         bail!("invalid radii: {r} must be finite and >= 0");
     }
-    let m = svkernel::metamodel::basis::BasisModel::load(model)?;
+    let (m, origin): (BasisModel, _) = Shipped::Basis.load(model)?;
     let (r1, rm) = m.r_1_m(albedo);
     let v = serde_json::json!({
         "albedo": albedo,
@@ -920,7 +965,7 @@ fn profile_query(albedo: f64, radii: &[f64], model: &std::path::Path) -> Result<
         "radii": radii,
         "density": radii.iter().map(|&r| m.density(r, albedo)).collect::<Vec<_>>(),
         "cdf": radii.iter().map(|&r| m.cdf(r, albedo)).collect::<Vec<_>>(),
-        "model": model.display().to_string(),
+        "model": origin.display().to_string(),
     });
     println!("{}", serde_json::to_string_pretty(&v)?);
     Ok(())
@@ -935,15 +980,16 @@ struct CompareArgs {
     analysis: bool,
     sampling: String,
     seed: u64,
+    models: ModelArgs,
     out: PathBuf,
 }
 
 /// `svkernel compare`: metrics, images, curves and the report.
 fn compare(a: CompareArgs) -> Result<()> {
-    use svkernel::render::compare::{CompareSettings, compare_scene};
+    use svkernel::jobs::compare::{CompareSettings, compare_scene};
+    use svkernel::jobs::render::RenderOptions;
     use svkernel::render::estimator::Sampling;
-    use svkernel::render::job::RenderOptions;
-    let scene = svkernel::render::scene::Scene::load(&a.scene)?;
+    let scene = svkernel::render::scene::Scene::find(&a.scene)?;
     if a.spp == Some(0) {
         bail!("invalid --spp = 0: must be >= 1");
     }
@@ -954,10 +1000,11 @@ fn compare(a: CompareArgs) -> Result<()> {
         reference_paths: a.paths,
         analysis: a.analysis,
         run: RunOptions {
-            progress: std::io::stderr().is_terminal(),
+            progress: true,
             ..Default::default()
         },
-        ..RenderOptions::new(a.out.clone())
+        cache: Some(cache_dir(a.models.cache.as_deref())?),
+        ..RenderOptions::new(a.out.clone(), a.models.load()?)
     };
     let settings = CompareSettings {
         curves: a.curves,
@@ -1006,17 +1053,19 @@ fn print_comparison(name: &str, doc: &serde_json::Value) {
 }
 
 /// `svkernel experiments`.
-fn experiments(
-    scenes: Vec<PathBuf>,
-    spp: u32,
-    paths: u64,
-    models: Vec<PathBuf>,
-    bases: Vec<PathBuf>,
-    seed: u64,
-    out: PathBuf,
-) -> Result<()> {
-    use svkernel::render::experiments::{Settings, report, run};
-    use svkernel::render::job::RenderOptions;
+fn experiments(a: ExperimentsArgs) -> Result<()> {
+    let ExperimentsArgs {
+        scenes,
+        spp,
+        paths,
+        models,
+        bases,
+        seed,
+        model_args,
+        out,
+    } = a;
+    use svkernel::jobs::experiments::{Settings, report, run};
+    use svkernel::jobs::render::RenderOptions;
     if spp == 0 {
         bail!("invalid --spp = 0: must be >= 1");
     }
@@ -1025,10 +1074,11 @@ fn experiments(
         reference_paths: Some(paths),
         seed,
         run: RunOptions {
-            progress: std::io::stderr().is_terminal(),
+            progress: true,
             ..Default::default()
         },
-        ..RenderOptions::new(out.clone())
+        cache: Some(cache_dir(model_args.cache.as_deref())?),
+        ..RenderOptions::new(out.clone(), model_args.load()?)
     };
     let rows = run(
         &Settings {
@@ -1048,8 +1098,8 @@ fn experiments(
         "rows": rows,
         "provenance": Provenance::current(),
     });
-    svkernel::io::write_json_atomic(&out.join("experiments.json"), &doc)?;
-    let html = svkernel::render::report::write_report(
+    svkernel::jobs::store::write_json_atomic(&out.join("experiments.json"), &doc)?;
+    let html = svkernel::jobs::report::write_report(
         &out,
         "experiments",
         "svkernel: the open experiments",
@@ -1105,11 +1155,11 @@ fn checkpoint_interval(every: f64) -> Result<Duration> {
 
 /// `svkernel render`.
 fn render(a: RenderArgs) -> Result<()> {
+    use svkernel::jobs::render::{RenderOptions, Target, render_scene, tag_or, write_outputs};
     use svkernel::render::estimator::Sampling;
-    use svkernel::render::job::{RenderOptions, Target, render_scene, tag_or, write_outputs};
     use svkernel::render::scene::Scene;
     use svkernel::render::svbssrdf::Variant;
-    let mut scene = Scene::load(&a.scene)?;
+    let mut scene = Scene::find(&a.scene)?;
     if let Some(n) = a.resolution {
         if !(1..=4096).contains(&n) {
             bail!("invalid --resolution = {n}: must be in 1..=4096");
@@ -1135,20 +1185,22 @@ fn render(a: RenderArgs) -> Result<()> {
         },
         seed: a.seed,
         reference_paths: a.paths,
-        basis: a.basis,
-        basis_diffuse: a.basis_diffuse,
-        meta: a.model,
+        models: a.models.load()?,
         shard: a.shard.as_deref().map(Shard::parse).transpose()?,
         run: RunOptions {
-            checkpoint: Some(a.out.join("reference")),
+            checkpoint: None,
             checkpoint_every: checkpoint_interval(a.checkpoint_every)?,
             resume: a.resume,
-            progress: std::io::stderr().is_terminal(),
+            progress: true,
         },
+        checkpoint: Some(a.out.join("reference")),
         reference_tallies: a.reference_tallies,
         analysis: !a.no_analysis,
-        cache: (!a.no_extend).then_some(a.cache),
-        kernels: DEFAULT_KERNELS.into(),
+        cache: if a.no_extend {
+            None
+        } else {
+            Some(cache_dir(a.models.cache.as_deref())?)
+        },
         out: a.out.clone(),
     };
     let passes = render_scene(&scene, &opts)?;
@@ -1188,6 +1240,7 @@ fn main() -> std::process::ExitCode {
             no_analysis,
             sampling,
             seed,
+            models,
             out,
         } => compare(CompareArgs {
             scene,
@@ -1197,25 +1250,25 @@ fn main() -> std::process::ExitCode {
             analysis: !no_analysis,
             sampling,
             seed,
+            models,
             out,
         }),
-        Command::Demo { out, paths } => demo(out, paths),
-        Command::Experiments {
-            scenes,
-            spp,
-            paths,
-            models,
-            bases,
-            seed,
-            out,
-        } => experiments(scenes, spp, paths, models, bases, seed, out),
+        Command::Demo { out, paths, models } => demo(out, paths, models),
+        Command::Scene { name } => {
+            print!(
+                "{}",
+                svkernel::jobs::shipped::scene_text(&name).unwrap_or_default()
+            );
+            Ok(())
+        }
+        Command::Experiments(a) => experiments(a),
         Command::Fit(f) => fit(f),
         Command::Profile {
             albedo,
             radii,
             model,
             json: _,
-        } => profile_query(albedo, &radii, &model),
+        } => profile_query(albedo, &radii, model.as_deref()),
         Command::Kernel {
             d,
             albedo,
@@ -1224,7 +1277,7 @@ fn main() -> std::process::ExitCode {
             manual,
             model,
             json: _,
-        } => kernel_query(d, albedo, density, &vertices, manual, &model),
+        } => kernel_query(d, albedo, density, &vertices, manual, model.as_deref()),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

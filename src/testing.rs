@@ -1,4 +1,5 @@
-//! Tolerances shared by the tests, each with the rule it encodes (style rule 12).
+//! Tolerances shared by the tests, each with the rule it encodes, and the
+//! shipped models for unit tests.
 
 /// Closed-form identities evaluated in f64.
 pub const REL_CLOSED_FORM: f64 = 1e-12;
@@ -79,4 +80,23 @@ pub fn chi2_statistic(observed: &[u64], expected: &[f64]) -> (f64, usize) {
         .map(|(o, e)| (o - e) * (o - e) / e)
         .sum();
     (stat, exp.len().saturating_sub(1))
+}
+
+/// The shipped basis BSSRDF (pencil incidence), parsed from the copy built
+/// into the crate.
+pub fn shipped_basis() -> crate::metamodel::basis::BasisModel {
+    crate::doc::from_json(
+        include_str!("../data/profiles/basis.json"),
+        std::path::Path::new("data/profiles/basis.json"),
+    )
+    .expect("the shipped basis model parses")
+}
+
+/// The shipped kernel meta-model, parsed from the copy built into the crate.
+pub fn shipped_meta() -> crate::metamodel::meta::MetaModelFile {
+    crate::doc::from_json(
+        include_str!("../data/profiles/metamodel.json"),
+        std::path::Path::new("data/profiles/metamodel.json"),
+    )
+    .expect("the shipped meta-model parses")
 }

@@ -4,7 +4,7 @@
 use std::path::Path;
 use svkernel::fit::exp_mixture::{BinnedDensity, Order, fit_mixture};
 use svkernel::fit::lm::FitOptions;
-use svkernel::fit::report::{accuracy, load_profiles};
+use svkernel::jobs::fit_profiles::{accuracy, load_profiles};
 use svkernel::metamodel::basis::BasisModel;
 use svkernel::testing::Z_MC;
 
@@ -133,7 +133,7 @@ fn model_file_round_trips_and_bad_files_are_named() {
     let dir = std::env::temp_dir().join(format!("svk-basis-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let p = dir.join("m.json");
-    svkernel::io::write_json_atomic(&p, &model).unwrap();
+    svkernel::jobs::store::write_json_atomic(&p, &model).unwrap();
     assert_eq!(BasisModel::load(&p).unwrap(), model);
     let text = std::fs::read_to_string(&p).unwrap();
     std::fs::write(&p, &text[..text.len() / 3]).unwrap();
@@ -144,7 +144,7 @@ fn model_file_round_trips_and_bad_files_are_named() {
     assert!(e.contains("format"), "{e}");
     let mut bad = model.clone();
     bad.ln_b[0].pop();
-    svkernel::io::write_json_atomic(&p, &bad).unwrap();
+    svkernel::jobs::store::write_json_atomic(&p, &bad).unwrap();
     assert!(
         BasisModel::load(&p)
             .unwrap_err()

@@ -88,14 +88,14 @@ fn texture(kind: &str, path: &Path) {
         }
         "png" => {
             let data: Vec<u8> = (0..n * n).map(|k| (k * 13 % 256) as u8).collect();
-            svkernel::render::output::write_png_bytes(path, n, false, &data).unwrap();
+            svkernel::jobs::output::write_png_bytes(path, n, false, &data).unwrap();
         }
         _ => {
             let mut img = svkernel::render::estimator::Image::zeros(n, 1);
             for (k, v) in img.mean.iter_mut().enumerate() {
                 *v = vals[k % 4];
             }
-            svkernel::render::output::write_exr(path, &img, "albedo").unwrap();
+            svkernel::jobs::output::write_exr(path, &img, "albedo").unwrap();
         }
     }
 }

@@ -306,7 +306,7 @@ fn corrupted_kernel_documents_are_named() {
     let dir = std::env::temp_dir().join(format!("svk-kern-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let p = dir.join("k.json");
-    svkernel::io::write_json_atomic(&p, &d).unwrap();
+    svkernel::jobs::store::write_json_atomic(&p, &d).unwrap();
     assert_eq!(KernelDoc::load(&p).unwrap(), d);
     let text = std::fs::read_to_string(&p).unwrap();
     std::fs::write(&p, &text[..text.len() / 2]).unwrap();
@@ -314,7 +314,7 @@ fn corrupted_kernel_documents_are_named() {
     assert!(e.contains("k.json") && e.contains("truncated"), "{e}");
     let mut bad = d.clone();
     bad.tally.cells[0][0].classes[0].count.pop();
-    svkernel::io::write_json_atomic(&p, &bad).unwrap();
+    svkernel::jobs::store::write_json_atomic(&p, &bad).unwrap();
     let e = KernelDoc::load(&p).unwrap_err().to_string();
     assert!(e.contains("tally.cells"), "{e}");
     std::fs::remove_dir_all(&dir).unwrap();

@@ -2,8 +2,8 @@
 
 use std::path::Path;
 use std::process::Command;
+use svkernel::fit::aggregation::aggregation_row;
 use svkernel::fit::gmm::fit_gmm;
-use svkernel::fit::kernel_report::aggregation_row;
 use svkernel::fit::lm::FitOptions;
 use svkernel::fit::meta::cells;
 use svkernel::forward::kernel::{KernelDoc, VertexClass};

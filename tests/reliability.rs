@@ -37,7 +37,7 @@ fn bad_scenes_fail_cleanly_through_the_cli() {
     let o = out.to_str().unwrap();
     let npy = |name: &str, v: f64, shape: (usize, usize)| {
         let arr = ndarray::Array2::from_elem(shape, v);
-        svkernel::io::write_npy_atomic(&d.join(name), &arr).unwrap();
+        svkernel::jobs::store::write_npy_atomic(&d.join(name), &arr).unwrap();
     };
     npy("nan.npy", f64::NAN, (3, 3));
     npy("neg.npy", -0.5, (3, 3));

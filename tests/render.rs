@@ -4,9 +4,9 @@
 
 use std::path::{Path, PathBuf};
 use svkernel::forward::runner::{RunOptions, Shard, Tally, chunk_range, run};
+use svkernel::jobs::render::{RenderOptions, Target, render_scene};
 use svkernel::render::analysis::analyse;
 use svkernel::render::estimator::{Image, Sampling};
-use svkernel::render::job::{RenderOptions, Target, render_scene};
 use svkernel::render::reference::Reference;
 use svkernel::render::scene::Scene;
 use svkernel::render::svbssrdf::{Method, Variant};
@@ -34,7 +34,7 @@ fn options(targets: Vec<Target>, spp: u32, paths: u64, out: &str) -> RenderOptio
         targets,
         spp: Some(spp),
         reference_paths: Some(paths),
-        ..RenderOptions::new(dir)
+        ..RenderOptions::new(dir, svkernel::jobs::shipped::Models::builtin().unwrap())
     }
 }
 
@@ -300,7 +300,7 @@ observable = "radiance"
     assert!(full.radiance.iter().any(|q| *q > 0) && full.exits.iter().any(|c| *c > 0));
 }
 
-fn assert_finite(passes: &[svkernel::render::job::Pass], what: &str) {
+fn assert_finite(passes: &[svkernel::jobs::render::Pass], what: &str) {
     for pass in passes {
         for r in &pass.rendered {
             assert!(
@@ -387,7 +387,7 @@ fn bad_textures_are_clear_errors() {
         let npy = dir.join(format!("{name}.npy"));
         let arr =
             ndarray::Array2::from_shape_fn((4, 4), |(i, j)| if i == 1 && j == 2 { v } else { 0.5 });
-        svkernel::io::write_npy_atomic(&npy, &arr).unwrap();
+        svkernel::jobs::store::write_npy_atomic(&npy, &arr).unwrap();
         let p = dir.join(format!("{name}.toml"));
         std::fs::write(&p, format!("albedo = {{ file = \"{name}.npy\" }}\n")).unwrap();
         let e = Scene::load(&p).unwrap_err().to_string();

@@ -16,11 +16,14 @@
 
 use super::gmm::{GmmFit, KernelHistogram, fit_gmm};
 use super::lm::{Blocks, FitError, FitOptions, FitReport, solve};
+use crate::fit::aggregation::{AggregationRow, aggregation_row};
 use crate::forward::kernel::{KernelDoc, NormalizedHistogram, VertexClass};
 use crate::metamodel::kernel::Gmm;
-use crate::metamodel::meta::MetaModel;
+use crate::metamodel::meta::{META_FORMAT, META_VERSION, MetaModel, MetaModelFile};
+use crate::provenance::Provenance;
 use levenberg_marquardt::LeastSquaresProblem;
 use nalgebra::{DMatrix, DVector, Dyn, Owned};
+use serde::{Deserialize, Serialize};
 
 /// Weight of the ridge residuals on non-constant coefficients.
 pub const RIDGE: f64 = 0.1;
@@ -439,6 +442,88 @@ pub fn export_problem(
             "chi2": rep.chi2,
         },
     }))
+}
+
+/// What [`fit_metamodel`] reports besides the model.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct MetaModelFit {
+    /// The joint fit of each class (all, last).
+    pub joint: Vec<FitReport>,
+    /// Per-cell fit reports (or the error) per class.
+    pub per_cell: Vec<(String, Vec<std::result::Result<FitReport, String>>)>,
+    /// The aggregation error of every cell ([`crate::fit::aggregation`]).
+    pub aggregation: Vec<AggregationRow>,
+}
+
+/// Fits the meta-model of the all-vertex and the last-vertex kernels with
+/// `k` components and polynomial degrees `degree` (in ln d, in √(1 − α)) to
+/// a kernel tally at unit density, and measures every cell's aggregation
+/// error. Pure: the caller writes the model and the report.
+pub fn fit_metamodel(
+    doc: &KernelDoc,
+    k: usize,
+    degree: (usize, usize),
+    progress: bool,
+) -> crate::Result<(MetaModelFile, MetaModelFit)> {
+    let task = crate::progress::Task::new(progress, "fitting the meta-model", 2, "vertex classes");
+    // The two classes are independent fits: run them side by side (the QR
+    // inside LM is single-threaded).
+    let fit_class = |class: VertexClass| {
+        let cs = cells(doc, class);
+        let what = format!("meta-model ({class:?} vertices)");
+        fit_meta(&cs, k, degree, &what).map(|r| (class, cs, r))
+    };
+    let (a, l) = rayon::join(
+        || fit_class(VertexClass::All),
+        || fit_class(VertexClass::Last),
+    );
+    let mut models: Vec<MetaModel> = Vec::new();
+    let mut joint = Vec::new();
+    let mut per_cell = Vec::new();
+    let mut aggregation = Vec::new();
+    for r in [a, l] {
+        let (class, cs, (m, rep, fits)) = r?;
+        task.inc(1);
+        use rayon::prelude::*;
+        aggregation.extend(
+            cs.par_iter()
+                .zip(&fits)
+                .map(|(c, f)| {
+                    let q = m.eval(c.d, c.alpha, 1.0);
+                    aggregation_row(class, c, f.as_ref().ok().map(|x| &x.0), &q.gmm)
+                })
+                .collect::<Vec<_>>(),
+        );
+        per_cell.push((
+            format!("{class:?}"),
+            fits.into_iter()
+                .map(|f| f.map(|x| x.1).map_err(|e| e.to_string()))
+                .collect(),
+        ));
+        joint.push(rep);
+        models.push(m);
+    }
+    let last = models.pop().expect("two models");
+    let all = models.pop().expect("two models");
+    let file = MetaModelFile {
+        format: META_FORMAT.into(),
+        version: META_VERSION,
+        all,
+        first: None,
+        last,
+        g: doc.config.g,
+        eta: doc.config.eta,
+        provenance: Provenance::current(),
+    };
+    task.finish();
+    Ok((
+        file,
+        MetaModelFit {
+            joint,
+            per_cell,
+            aggregation,
+        },
+    ))
 }
 
 #[cfg(test)]

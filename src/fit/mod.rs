@@ -1,6 +1,10 @@
 //! Least-squares fitting (design §3 step 2): the Levenberg–Marquardt layer
 //! ([`lm`]), per-profile exponential mixtures ([`exp_mixture`]) and the
-//! smooth-in-albedo basis BSSRDF ([`basis`]).
+//! smooth-in-albedo basis BSSRDF ([`basis`]), per-configuration Gaussian
+//! mixtures of the kernel histograms ([`gmm`]) and the joint kernel
+//! meta-model ([`meta`]). Every fit is pure: it takes loaded documents and
+//! returns the model and its report; the jobs ([`crate::jobs`]) read and
+//! write the files.
 //!
 //! A fit goes residual → exact Jacobian → derivative check → solve → report:
 //!
@@ -21,10 +25,9 @@
 //! assert!((fit.energy() / truth.energy() - 1.0).abs() < 1e-6);
 //! ```
 
+pub mod aggregation;
 pub mod basis;
 pub mod exp_mixture;
 pub mod gmm;
-pub mod kernel_report;
 pub mod lm;
 pub mod meta;
-pub mod report;

@@ -44,7 +44,7 @@ use crate::error::{Error, Result};
 use crate::forward::medium::Source;
 use crate::provenance::Provenance;
 use serde::{Deserialize, Serialize};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 /// Format tag of kernel documents.
 pub const KERNEL_FORMAT: &str = "svkernel.kernels";
@@ -624,35 +624,6 @@ impl KernelDoc {
         }
     }
 
-    /// Loads and checks a kernel document (format, version, tally shape).
-    pub fn load(path: &Path) -> Result<Self> {
-        let doc: KernelDoc = crate::io::read_json(path)?;
-        crate::io::check_header(
-            path,
-            (&doc.format, doc.version),
-            (KERNEL_FORMAT, KERNEL_VERSION),
-        )?;
-        let c = &doc.config;
-        let bins = c.grid.bins() + 1;
-        let shape_ok = doc.tally.cells.len() == c.albedos.len()
-            && doc.tally.cells.iter().all(|row| {
-                row.len() == c.distances.len()
-                    && row.iter().all(|cell| {
-                        cell.classes
-                            .iter()
-                            .all(|k| [&k.count, &k.sq, &k.cross].iter().all(|v| v.len() == bins))
-                    })
-            });
-        if !shape_ok {
-            return Err(Error::format(
-                path,
-                "tally.cells",
-                "shape does not match config (albedos × distances × grid bins)",
-            ));
-        }
-        Ok(doc)
-    }
-
     /// The normalised histogram of cell (albedo `ia`, distance `id`).
     ///
     /// mass_b = Σ n_b / Σ n_c (fraction of the class's vertices; n_b the
@@ -677,6 +648,35 @@ impl KernelDoc {
             c.distances[id],
             PairGrid::scale(c.distances[id], 1.0 / c.density),
         )
+    }
+}
+
+impl crate::doc::Document for KernelDoc {
+    const FORMAT: &'static str = KERNEL_FORMAT;
+    const VERSION: u32 = KERNEL_VERSION;
+    const WHAT: &'static str = "kernel tally";
+
+    fn validate(&self, path: &std::path::Path) -> crate::Result<()> {
+        let doc = self;
+        let c = &doc.config;
+        let bins = c.grid.bins() + 1;
+        let shape_ok = doc.tally.cells.len() == c.albedos.len()
+            && doc.tally.cells.iter().all(|row| {
+                row.len() == c.distances.len()
+                    && row.iter().all(|cell| {
+                        cell.classes
+                            .iter()
+                            .all(|k| [&k.count, &k.sq, &k.cross].iter().all(|v| v.len() == bins))
+                    })
+            });
+        if !shape_ok {
+            return Err(Error::format(
+                path,
+                "tally.cells",
+                "shape does not match config (albedos × distances × grid bins)",
+            ));
+        }
+        Ok(())
     }
 }
 

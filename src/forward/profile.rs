@@ -8,7 +8,6 @@ use super::walk::{entry_weight, simulate_scalar};
 use crate::error::{Error, Result};
 use crate::provenance::Provenance;
 use serde::{Deserialize, Serialize};
-use std::path::Path;
 
 /// Format tag and version of profile documents.
 pub const PROFILE_FORMAT: &str = "svkernel.profile";
@@ -233,14 +232,22 @@ impl ProfileDoc {
         }
     }
 
-    /// Loads and checks a profile document.
-    pub fn load(path: &Path) -> Result<Self> {
-        let doc: ProfileDoc = crate::io::read_json(path)?;
-        crate::io::check_header(
-            path,
-            (&doc.format, doc.version),
-            (PROFILE_FORMAT, PROFILE_VERSION),
-        )?;
+    /// The summary R_d (and R₁, Rₘ) with standard errors, as estimates.
+    pub fn r_d(&self) -> Estimate {
+        Estimate {
+            value: self.R_d,
+            stderr: self.R_d_stderr,
+        }
+    }
+}
+
+impl crate::doc::Document for ProfileDoc {
+    const FORMAT: &'static str = PROFILE_FORMAT;
+    const VERSION: u32 = PROFILE_VERSION;
+    const WHAT: &'static str = "radial profile";
+
+    fn validate(&self, path: &std::path::Path) -> crate::Result<()> {
+        let doc = self;
         let n = doc.config.bins.len();
         if doc.tally.exit_single.len() != n || doc.tally.exit_multi.len() != n {
             return Err(Error::format(
@@ -256,15 +263,7 @@ impl ProfileDoc {
                 "counts do not add up to the launched paths",
             ));
         }
-        Ok(doc)
-    }
-
-    /// The summary R_d (and R₁, Rₘ) with standard errors, as estimates.
-    pub fn r_d(&self) -> Estimate {
-        Estimate {
-            value: self.R_d,
-            stderr: self.R_d_stderr,
-        }
+        Ok(())
     }
 }
 

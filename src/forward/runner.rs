@@ -1,5 +1,5 @@
 //! Deterministic, shardable, checkpointed execution of a simulation split
-//! into fixed chunks (style rule 9).
+//! into fixed chunks.
 //!
 //! A simulation of N paths is cut into `ceil(N / CHUNK_PATHS)` chunks of
 //! consecutive path indices. The chunk size is a constant, never derived from
@@ -10,14 +10,15 @@
 //! (0-based k) is the contiguous chunk range `[k·C/N, (k+1)·C/N)`.
 //!
 //! Between batches the runner may write a checkpoint (the running tally and
-//! the next chunk) with an atomic rename; a resumed run starts from it and
-//! ends with the same tally as an uninterrupted one.
+//! the next chunk) to a [`CheckpointStore`] (the job layer's is a file,
+//! replaced atomically: [`crate::jobs::store::FileCheckpoint`]); a resumed
+//! run starts from it and ends with the same tally as an uninterrupted one.
 
 use crate::error::{Error, Result};
-use crate::io::{read_json, write_json_compact_atomic};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize, de::DeserializeOwned};
-use std::path::PathBuf;
+use std::path::Path;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 /// Paths per chunk. Changing it changes nothing in the results (every path
@@ -129,17 +130,31 @@ struct Checkpoint<T> {
     tally: T,
 }
 
+/// Where a run keeps its checkpoint: serialised bytes, written whole or not
+/// at all. The runner never opens files itself.
+pub trait CheckpointStore: Send + Sync + std::fmt::Debug {
+    /// What errors name (a file path).
+    fn origin(&self) -> &Path;
+    /// The stored checkpoint, if there is one.
+    fn load(&self) -> Result<Option<Vec<u8>>>;
+    /// Replaces the stored checkpoint.
+    fn save(&self, bytes: &[u8]) -> Result<()>;
+    /// Removes the stored checkpoint (the run finished).
+    fn clear(&self) -> Result<()>;
+}
+
 /// How to run: where to checkpoint, how often, whether to resume, progress.
 #[derive(Clone, Debug, Default)]
 pub struct RunOptions {
-    /// Checkpoint file; `None` disables checkpoints.
-    pub checkpoint: Option<PathBuf>,
+    /// Checkpoint store; `None` disables checkpoints.
+    pub checkpoint: Option<Arc<dyn CheckpointStore>>,
     /// Minimum time between two checkpoints (a checkpoint is written after
     /// the first batch that ends past it).
     pub checkpoint_every: Duration,
     /// Continue from the checkpoint if one exists.
     pub resume: bool,
-    /// Show a progress bar on stderr (only drawn on a terminal).
+    /// Report progress on stderr ([`crate::progress`]: a bar on a terminal,
+    /// log lines otherwise).
     pub progress: bool,
 }
 
@@ -161,10 +176,12 @@ pub fn run<T: Tally>(
 ) -> Result<RunOutcome<T>> {
     let start = Instant::now();
     let (mut next, mut total, mut wall_before) = (range.0, empty, 0.0);
-    if let (true, Some(path)) = (opts.resume, &opts.checkpoint)
-        && path.exists()
+    if let (true, Some(store)) = (opts.resume, &opts.checkpoint)
+        && let Some(bytes) = store.load()?
     {
-        let ck: Checkpoint<T> = read_json(path)?;
+        let path = store.origin();
+        let ck: Checkpoint<T> = serde_json::from_slice(&bytes)
+            .map_err(|e| Error::format(path, "(json)", e.to_string()))?;
         if &ck.key != key {
             return Err(Error::format(
                 path,
@@ -193,7 +210,8 @@ pub fn run<T: Tally>(
         total = ck.tally;
         wall_before = ck.wall_s;
     }
-    let bar = progress_bar(opts.progress, range, next);
+    let bar = crate::progress::Task::new(opts.progress, "simulating", range.1 - range.0, "chunks");
+    bar.set(next - range.0);
     let mut last_checkpoint = Instant::now();
     while next < range.1 {
         let hi = (next + BATCH_CHUNKS).min(range.1);
@@ -202,10 +220,8 @@ pub fn run<T: Tally>(
             total.merge(p);
         }
         next = hi;
-        if let Some(b) = &bar {
-            b.set_position(next - range.0);
-        }
-        if let Some(path) = &opts.checkpoint
+        bar.set(next - range.0);
+        if let Some(store) = &opts.checkpoint
             && next < range.1
             && last_checkpoint.elapsed() >= opts.checkpoint_every
         {
@@ -218,34 +234,17 @@ pub fn run<T: Tally>(
                 tally: total.clone(),
             };
             // Compact: a reference tally at 4096² × 3 is hundreds of MB.
-            write_json_compact_atomic(path, &ck)?;
+            let bytes = serde_json::to_vec(&ck)
+                .map_err(|e| Error::format(store.origin(), "(json)", e.to_string()))?;
+            store.save(&bytes)?;
             last_checkpoint = Instant::now();
         }
     }
-    if let Some(b) = bar {
-        b.finish_and_clear();
-    }
+    bar.finish();
     Ok(RunOutcome {
         tally: total,
         wall_s: wall_before + start.elapsed().as_secs_f64(),
     })
-}
-
-fn progress_bar(enabled: bool, range: (u64, u64), next: u64) -> Option<indicatif::ProgressBar> {
-    if !enabled {
-        return None;
-    }
-    let bar = indicatif::ProgressBar::with_draw_target(
-        Some(range.1 - range.0),
-        indicatif::ProgressDrawTarget::stderr(),
-    );
-    if let Ok(style) = indicatif::ProgressStyle::with_template(
-        "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} chunks (ETA {eta})",
-    ) {
-        bar.set_style(style);
-    }
-    bar.set_position(next - range.0);
-    Some(bar)
 }
 
 #[cfg(test)]
@@ -281,12 +280,31 @@ mod tests {
         }
     }
 
+    /// A checkpoint kept in memory.
+    #[derive(Debug, Default)]
+    struct Memory(std::sync::Mutex<Option<Vec<u8>>>);
+
+    impl CheckpointStore for Memory {
+        fn origin(&self) -> &Path {
+            Path::new("run.ckpt")
+        }
+        fn load(&self) -> Result<Option<Vec<u8>>> {
+            Ok(self.0.lock().unwrap().clone())
+        }
+        fn save(&self, bytes: &[u8]) -> Result<()> {
+            *self.0.lock().unwrap() = Some(bytes.to_vec());
+            Ok(())
+        }
+        fn clear(&self) -> Result<()> {
+            *self.0.lock().unwrap() = None;
+            Ok(())
+        }
+    }
+
     #[test]
     fn a_checkpoint_resumes_only_its_own_chunk_range() {
-        let dir = std::env::temp_dir().join(format!("svk-runner-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
         let opts = RunOptions {
-            checkpoint: Some(dir.join("run.ckpt")),
+            checkpoint: Some(Arc::new(Memory::default())),
             checkpoint_every: Duration::ZERO,
             resume: true,
             progress: false,
@@ -314,7 +332,6 @@ mod tests {
             .expect("a checkpoint of another chunk range must be refused")
             .to_string();
         assert!(err.contains("run.ckpt") && err.contains("range"), "{err}");
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

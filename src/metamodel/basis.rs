@@ -319,12 +319,16 @@ impl BasisModel {
             parts: vec![self.single(alpha), self.multi(alpha)],
         }
     }
+}
 
-    /// Loads and validates a model file.
-    pub fn load(path: &std::path::Path) -> crate::Result<Self> {
+impl crate::doc::Document for BasisModel {
+    const FORMAT: &'static str = BASIS_FORMAT;
+    const VERSION: u32 = BASIS_VERSION;
+    const WHAT: &'static str = "basis BSSRDF model";
+
+    fn validate(&self, path: &std::path::Path) -> crate::Result<()> {
+        let m = self;
         use crate::Error;
-        let m: BasisModel = crate::io::read_json(path)?;
-        crate::io::check_header(path, (&m.format, m.version), (BASIS_FORMAT, BASIS_VERSION))?;
         let rows_ok = |rows: &Vec<Vec<f64>>| {
             rows.iter()
                 .all(|r| r.len() == m.degree + 1 && r.iter().all(|v| v.is_finite()))
@@ -351,7 +355,7 @@ impl BasisModel {
                 "need matching positive finite a and b",
             ));
         }
-        Ok(m)
+        Ok(())
     }
 }
 

@@ -388,17 +388,21 @@ impl MetaModelFile {
             }
         }
     }
+}
 
-    /// Loads and validates a meta-model file.
-    pub fn load(path: &Path) -> Result<Self> {
-        let f: MetaModelFile = crate::io::read_json(path)?;
-        crate::io::check_header(path, (&f.format, f.version), (META_FORMAT, META_VERSION))?;
+impl crate::doc::Document for MetaModelFile {
+    const FORMAT: &'static str = META_FORMAT;
+    const VERSION: u32 = META_VERSION;
+    const WHAT: &'static str = "kernel meta-model";
+
+    fn validate(&self, path: &std::path::Path) -> crate::Result<()> {
+        let f = self;
         f.all.check(path, "all")?;
         if let Some(m) = &f.first {
             m.check(path, "first")?;
         }
         f.last.check(path, "last")?;
-        Ok(f)
+        Ok(())
     }
 }
 

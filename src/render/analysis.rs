@@ -17,7 +17,7 @@
 //!   collimated one the collimated basis (only that one is loaded);
 //! * **range** — the (α, ρ·d) the scene can query against the range the
 //!   meta-model was trained on: albedos outside it are simulated and fitted
-//!   ([`super::extend`]); optical pair distances beyond it keep the kernel
+//!   ([`crate::jobs::extend`]); optical pair distances beyond it keep the kernel
 //!   shape of the largest trained distance, scaled with λ = ρd/2 + 1 (the
 //!   compare report states both).
 //!

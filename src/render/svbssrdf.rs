@@ -333,7 +333,7 @@ pub struct SvBssrdf {
     pub variant: Variant,
     basis: Arc<BasisTable>,
     meta: Option<Arc<MetaModelFile>>,
-    /// A meta-model for albedos outside `meta`'s range ([`super::extend`]).
+    /// A meta-model for albedos outside `meta`'s range ([`crate::jobs::extend`]).
     extension: Option<Arc<MetaModelFile>>,
     albedo: Vec<TexelMap>,
     density: Density,
@@ -426,7 +426,7 @@ impl SvBssrdf {
 
     /// Uses `ext` for kernel queries whose albedo α₀ lies outside the main
     /// meta-model's trained range (simulated and fitted for the scene's
-    /// missing range by [`super::extend::ensure`]).
+    /// missing range by [`crate::jobs::extend::ensure`]).
     pub fn with_extension(mut self, ext: Arc<MetaModelFile>) -> Self {
         self.extension = Some(ext);
         self
@@ -847,7 +847,7 @@ mod tests {
     use crate::metamodel::kernel::{manual_kernel, optical_distance, scale_for_density};
 
     fn basis() -> (BasisModel, Arc<BasisTable>) {
-        let m = BasisModel::load(std::path::Path::new("data/profiles/basis.json")).unwrap();
+        let m = crate::testing::shipped_basis();
         let t = Arc::new(BasisTable::new(&m));
         (m, t)
     }
@@ -993,9 +993,7 @@ mod tests {
     #[test]
     fn split_form_stays_bounded_as_albedos_vanish() {
         let (_, t) = basis();
-        let meta = Arc::new(
-            MetaModelFile::load(std::path::Path::new("data/profiles/metamodel.json")).unwrap(),
-        );
+        let meta = Arc::new(crate::testing::shipped_meta());
         for eps in [0.0, 1e-300, 1e-12, 1e-6, 1e-3] {
             // A map of ε with one bright texel far away, and a map of ε only.
             let mut v = vec![eps; 16 * 16];
@@ -1069,8 +1067,7 @@ mod tests {
     #[test]
     fn learned_puts_each_kernel_in_its_role() {
         let (_, t) = basis();
-        let mut file =
-            MetaModelFile::load(std::path::Path::new("data/profiles/metamodel.json")).unwrap();
+        let mut file = crate::testing::shipped_meta();
         // A first-vertex model unlike the last-vertex one (the shipped file
         // has none: under normal incidence the first vertex is a δ).
         file.first = Some(file.all.clone());

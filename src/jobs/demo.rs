@@ -11,6 +11,7 @@ use crate::forward::medium::{Medium, Source};
 use crate::forward::profile::{DEFAULT_MAX_EVENTS, Engine, ProfileConfig, ProfileDoc};
 use crate::forward::runner::{RunOptions, chunk_range};
 use crate::forward::tally::RadialBins;
+use crate::jobs::shipped::Models;
 use crate::provenance::Provenance;
 use std::path::{Path, PathBuf};
 
@@ -28,19 +29,10 @@ pub struct DemoReport {
     pub manual: crate::metamodel::kernel::Gmm,
 }
 
-/// The shipped basis model and kernel meta-model (paths relative to the
-/// repository root, where `cargo run` starts).
-pub const SHIPPED_BASIS: &str = "data/profiles/basis.json";
-pub const SHIPPED_META: &str = "data/profiles/metamodel.json";
-/// The kernel tallies the shipped meta-model was fitted to.
-pub const SHIPPED_KERNELS: &str = "data/kernels/eta1.5_g0.3_pencil.json";
-/// The shipped diffuse-incidence basis model (scenes with a diffuse light).
-pub const SHIPPED_BASIS_DIFFUSE: &str = "data/profiles/basis_diffuse.json";
-
 /// Simulates `paths` paths of the default medium (η = 1.5, g = 0.3) at
 /// α = 0.9 with a pencil beam and writes `profile.json` and `profile.png`
-/// to `out`.
-pub fn run(out: &Path, paths: u64, progress: bool) -> Result<DemoReport> {
+/// to `out`; compares `models` with it.
+pub fn run(out: &Path, paths: u64, models: &Models, progress: bool) -> Result<DemoReport> {
     let alpha = 0.9;
     let config = ProfileConfig {
         medium: Medium::default_with_albedo(alpha)?,
@@ -60,12 +52,11 @@ pub fn run(out: &Path, paths: u64, progress: bool) -> Result<DemoReport> {
     let doc = ProfileDoc::new(config, None, chunks, tally, wall_s, Provenance::current());
     let json = out.join("profile.json");
     let plot = out.join("profile.png");
-    crate::io::write_json_atomic(&json, &doc)?;
-    crate::plot::profile_plot(&doc, &plot)?;
+    crate::jobs::store::write_json_atomic(&json, &doc)?;
+    crate::jobs::plot::profile_plot(&doc, &plot)?;
     let oracle = crate::oracles::lookup(&crate::oracles::RD_ETA15_G03, alpha).unwrap_or(f64::NAN);
-    let basis = crate::metamodel::basis::BasisModel::load(Path::new(SHIPPED_BASIS))?;
-    let (r1, rm) = basis.r_1_m(alpha);
-    let meta = crate::metamodel::meta::MetaModelFile::load(Path::new(SHIPPED_META))?;
+    let (r1, rm) = models.basis.r_1_m(alpha);
+    let meta = &models.meta;
     Ok(DemoReport {
         doc,
         oracle,
@@ -81,7 +72,7 @@ pub fn run(out: &Path, paths: u64, progress: bool) -> Result<DemoReport> {
 }
 
 /// The scenes the demo renders, the reference paths and samples per pixel.
-pub const DEMO_SCENES: [&str; 2] = ["scenes/stripes.toml", "scenes/checker.toml"];
+pub const DEMO_SCENES: [&str; 2] = ["stripes", "checker"];
 const DEMO_REFERENCE_PATHS: u64 = 4_000_000;
 const DEMO_SPP: u32 = 64;
 /// Error-vs-time budgets of the demo: truth paths, model spp, reference paths.
@@ -95,11 +86,12 @@ const DEMO_PATHS_LIST: [u64; 3] = [100_000, 1_000_000, 4_000_000];
 /// of them; returns each scene's name and comparison.
 pub fn compare_scenes(
     out: &Path,
+    models: &Models,
     progress: bool,
-) -> Result<Vec<(String, crate::render::compare::Comparison)>> {
-    use crate::render::compare::{CompareSettings, compare_scene};
-    use crate::render::job::RenderOptions;
-    use crate::render::report::{Block, write_report};
+) -> Result<Vec<(String, crate::jobs::compare::Comparison)>> {
+    use crate::jobs::compare::{CompareSettings, compare_scene};
+    use crate::jobs::render::RenderOptions;
+    use crate::jobs::report::{Block, write_report};
     let settings = CompareSettings {
         curves: Some((
             DEMO_TRUTH_PATHS,
@@ -112,11 +104,11 @@ pub fn compare_scenes(
     let mut blocks = vec![
         Block::Para(
             "The end-to-end demo on the shipped data: the basis BSSRDF \
-             (`data/profiles/basis.json`) and the kernel meta-model \
-             (`data/profiles/metamodel.json`) render the `stripes` and `checker` scenes with \
+             and the kernel meta-model built into svkernel (the same as \
+             `data/profiles/basis.json` and `metamodel.json`) render the `stripes` and `checker` scenes with \
              every method; the brute-force reference (the heterogeneous walk) is the ground \
              truth. Produced by `cargo run --release -- demo`; one scene alone: \
-             `cargo run --release -- compare scenes/stripes.toml`."
+             `svkernel compare stripes`."
                 .into(),
         ),
         Block::Figure {
@@ -127,7 +119,7 @@ pub fn compare_scenes(
         },
     ];
     for path in DEMO_SCENES {
-        let scene = crate::render::scene::Scene::load(Path::new(path))?;
+        let scene = crate::render::scene::Scene::find(Path::new(path))?;
         let opts = RenderOptions {
             spp: Some(DEMO_SPP),
             reference_paths: Some(DEMO_REFERENCE_PATHS),
@@ -135,7 +127,7 @@ pub fn compare_scenes(
                 progress,
                 ..Default::default()
             },
-            ..RenderOptions::new(out.join(&scene.name))
+            ..RenderOptions::new(out.join(&scene.name), models.clone())
         };
         let c = compare_scene(&scene, &opts, &settings)?;
         blocks.extend(c.blocks.iter().cloned());

@@ -1,9 +1,9 @@
-//! Simulate and fit only the missing range (issue 7 §4): when a scene's
+//! Simulate and fit only the missing range: when a scene's
 //! albedos reach outside the albedo range the kernel meta-model was trained
 //! on, `learned` would clamp there. Instead, [`ensure`] simulates path
 //! densities at a few albedos spanning just the missing interval (plus an
-//! overlap into the trained range), fits a meta-model to them, and caches
-//! both under a content hash, so the next render with the same model and
+//! overlap into the trained range), fits a meta-model to them in memory,
+//! and caches the model and its tally under a content hash, so the next render with the same model and
 //! the same missing interval reuses them.
 //!
 //! The extension model is used for kernel queries whose albedo α₀ lies
@@ -114,49 +114,56 @@ fn albedos(missing: [f64; 2], trained: [f64; 2]) -> Vec<f64> {
         .collect()
 }
 
-/// FNV-1a over byte strings, hex.
-fn hash(parts: &[&[u8]]) -> String {
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for p in parts {
-        for b in p.iter().chain(&[0xff]) {
-            h = (h ^ *b as u64).wrapping_mul(0x0100_0000_01b3);
-        }
-    }
-    format!("{h:016x}")
-}
-
-/// Makes sure an extension of `meta` (loaded from `meta_path`) over
-/// `missing` exists in `cache` (module docs), simulating with the
-/// configuration of the training tallies `kernels_path` at new albedos;
-/// returns what was done and the extension model.
+/// Makes sure an extension of `meta` over `missing` exists in `cache`
+/// (module docs): simulates with the configuration of the training tallies
+/// `training` at new albedos, fits in memory, and stores the model and its
+/// tally under a content hash of (model, configuration); returns what was
+/// done and the extension model.
 pub fn ensure(
     meta: &MetaModelFile,
-    meta_path: &Path,
-    kernels_path: &Path,
+    training: &KernelConfig,
     missing: [f64; 2],
     cache: &Path,
     progress: bool,
 ) -> Result<(Extension, MetaModelFile)> {
     let trained = meta.all.alpha_range;
-    let training = KernelDoc::load(kernels_path)?;
     let albedos = albedos(missing, trained);
     let config = KernelConfig {
         albedos: albedos.clone(),
         paths: extension_paths(missing, trained),
-        ..training.config.clone()
+        ..training.clone()
     };
     config.validate()?;
-    let meta_bytes = std::fs::read(meta_path).map_err(|e| Error::io(meta_path, e))?;
+    let origin = Path::new("(meta-model extension)");
+    let meta_json = serde_json::to_vec(meta).map_err(|e| Error::format(origin, "model", e))?;
     let config_json =
-        serde_json::to_vec(&config).map_err(|e| Error::format(kernels_path, "config", e))?;
-    let key = hash(&[b"svkernel extension v1", &meta_bytes, &config_json]);
+        serde_json::to_vec(&config).map_err(|e| Error::format(origin, "config", e))?;
+    let key = crate::jobs::store::content_hash([
+        b"svkernel extension v2".as_slice(),
+        &meta_json,
+        &config_json,
+    ]);
     let model = cache.join(format!("metamodel_ext_{key}.json"));
     let kernels = cache.join(format!("kernels_ext_{key}.json"));
     // A cached entry is reused; a damaged one is an error naming the file
     // (from the load below), not a silent refit.
-    let cached = model.exists() && kernels.exists();
+    let cached = model.exists();
     let (paths, t0) = (config.paths, Instant::now());
-    if !cached {
+    let loaded = if cached {
+        MetaModelFile::load(&model)?
+    } else {
+        if progress {
+            eprintln!(
+                "albedos {:.3}–{:.3} lie outside the meta-model's trained range {:.3}–{:.3}: \
+                 simulating {:.1e} paths at {} albedos and fitting an extension",
+                missing[0],
+                missing[1],
+                trained[0],
+                trained[1],
+                config.paths as f64,
+                albedos.len()
+            );
+        }
         let opts = RunOptions {
             progress,
             ..Default::default()
@@ -164,17 +171,12 @@ pub fn ensure(
         let (tally, wall_s) = config.run(None, &opts)?;
         let chunks = vec![chunk_range(config.paths, None)];
         let doc = KernelDoc::new(config, None, chunks, tally, wall_s, Provenance::current());
-        crate::io::write_json_compact_atomic(&kernels, &doc)?;
         let degree = (meta.all.deg_x, meta.all.deg_y.min(EXTENSION_ALBEDOS - 2));
-        crate::fit::kernel_report::fit_kernels(
-            &kernels,
-            &model,
-            &cache.join(format!("metamodel_ext_{key}_report")),
-            meta.all.k,
-            degree,
-        )?;
-    }
-    let loaded = MetaModelFile::load(&model)?;
+        let (file, _) = crate::fit::meta::fit_metamodel(&doc, meta.all.k, degree, progress)?;
+        crate::jobs::store::write_json_compact_atomic(&kernels, &doc)?;
+        crate::jobs::store::write_json_atomic(&model, &file)?;
+        file
+    };
     let done = Extension {
         missing,
         albedos,

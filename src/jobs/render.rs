@@ -18,18 +18,18 @@
 //! * `render.json` — scene, settings, per-method timings and errors
 //!   against the reference, provenance.
 
-use super::analysis::analyse;
-use super::estimator::{self, Image, Sampling, Settings, View};
 use super::extend::{self, Extension};
 use super::output;
-use super::reference::{REFERENCE_FORMAT, REFERENCE_VERSION, Reference, ReferenceTally};
-use super::scene::{LightKind, Scene};
-use super::svbssrdf::{BasisTable, Density, Method, SvBssrdf, Variant};
 use crate::error::{Error, Result};
 use crate::forward::runner::{RunOptions, Shard, chunk_range, run};
+use crate::jobs::shipped::Models;
 use crate::metamodel::basis::BasisModel;
-use crate::metamodel::meta::MetaModelFile;
 use crate::provenance::Provenance;
+use crate::render::analysis::analyse;
+use crate::render::estimator::{self, Image, Sampling, Settings, View};
+use crate::render::reference::{REFERENCE_FORMAT, REFERENCE_VERSION, Reference, ReferenceTally};
+use crate::render::scene::{LightKind, Scene};
+use crate::render::svbssrdf::{BasisTable, Density, Method, SvBssrdf, Variant};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -69,33 +69,31 @@ pub struct RenderOptions {
     pub variant: Variant,
     pub seed: u64,
     pub reference_paths: Option<u64>,
-    /// Collimated-incidence basis, diffuse-incidence basis, meta-model.
-    pub basis: PathBuf,
-    pub basis_diffuse: PathBuf,
-    pub meta: PathBuf,
+    /// The basis models, the meta-model and its training configuration.
+    pub models: Models,
     pub out: PathBuf,
     /// Reference: only this shard (the images are then partial).
     pub shard: Option<Shard>,
-    /// Reference: checkpointing and progress.
+    /// Reference: checkpoint interval, resume and progress.
     pub run: RunOptions,
+    /// Reference: checkpoints go to `<this>.<pass>.ckpt`; `None`: none.
+    pub checkpoint: Option<PathBuf>,
     /// Use these merged reference tallies (one per pass, in pass order)
     /// instead of simulating.
     pub reference_tallies: Vec<PathBuf>,
-    /// Skip the effects the scene does not call for ([`super::analysis`]).
+    /// Skip the effects the scene does not call for ([`crate::render::analysis`]).
     pub analysis: bool,
     /// Where meta-model extensions for albedos outside the trained range
     /// are cached ([`super::extend`]); `None`: clamp there instead.
     pub cache: Option<PathBuf>,
-    /// The kernel tallies the meta-model was trained on (their
-    /// configuration is reused by extensions).
-    pub kernels: PathBuf,
 }
 
 impl RenderOptions {
-    /// The defaults into `out`: the scene's targets, samples and reference
-    /// paths, importance sampling, the default variant, seed 1, the shipped
-    /// models, no shard, no checkpoint, no progress.
-    pub fn new(out: PathBuf) -> Self {
+    /// The defaults into `out` with `models`: the scene's targets, samples
+    /// and reference paths, importance sampling, the default variant, seed
+    /// 1, no shard, no checkpoint, no progress, extensions cached in
+    /// [`crate::jobs::shipped::cache_dir`] (if the platform has one).
+    pub fn new(out: PathBuf, models: Models) -> Self {
         RenderOptions {
             targets: Vec::new(),
             spp: None,
@@ -103,16 +101,14 @@ impl RenderOptions {
             variant: Variant::default(),
             seed: 1,
             reference_paths: None,
-            basis: crate::demo::SHIPPED_BASIS.into(),
-            basis_diffuse: crate::demo::SHIPPED_BASIS_DIFFUSE.into(),
-            meta: crate::demo::SHIPPED_META.into(),
+            models,
             out,
             shard: None,
             run: RunOptions::default(),
+            checkpoint: None,
             reference_tallies: Vec::new(),
             analysis: true,
-            cache: Some("out/cache".into()),
-            kernels: crate::demo::SHIPPED_KERNELS.into(),
+            cache: crate::jobs::shipped::cache_dir(None).ok(),
         }
     }
 }
@@ -131,16 +127,22 @@ pub struct ReferenceDoc {
 }
 
 impl ReferenceDoc {
-    /// Reads a reference tally document and checks that it is whole: its
-    /// header, the tally's shape against its key (resolution, channels), and
-    /// its path count against the chunks it claims. Errors name the file.
+    /// Reads a reference tally document ([`crate::jobs::store::load`]).
     pub fn load(path: &Path) -> Result<Self> {
-        let doc: ReferenceDoc = crate::io::read_json(path)?;
-        crate::io::check_header(
-            path,
-            (&doc.format, doc.version),
-            (REFERENCE_FORMAT, REFERENCE_VERSION),
-        )?;
+        crate::jobs::store::load(path)
+    }
+}
+
+impl crate::doc::Document for ReferenceDoc {
+    const FORMAT: &'static str = REFERENCE_FORMAT;
+    const VERSION: u32 = REFERENCE_VERSION;
+    const WHAT: &'static str = "reference tally";
+
+    /// Checks that the tally is whole: its shape against its key
+    /// (resolution, channels), and its path count against the chunks it
+    /// claims. Errors name the file.
+    fn validate(&self, path: &Path) -> Result<()> {
+        let doc = self;
         let t = &doc.tally;
         let key_usize = |k: &str| doc.key.get(k).and_then(|v| v.as_u64());
         let cells = t.resolution * t.resolution * t.channels;
@@ -171,7 +173,7 @@ impl ReferenceDoc {
                 ),
             ));
         }
-        Ok(doc)
+        Ok(())
     }
 }
 
@@ -281,29 +283,26 @@ pub fn rel_rmse(m: &Image, r: &Image, subtract_own_noise: bool) -> f64 {
     from_sums(error_sums(&m, r, subtract_own_noise, 0..r.channels)).rel_rmse
 }
 
-/// A content hash of the scene (FNV-1a, 64 bits, hex): the scene file's
+/// A content hash of the scene ([`crate::jobs::store::content_hash`]): the scene file's
 /// bytes, then every loaded map (shape, texel size and values, bit for bit).
 /// It identifies a reference simulation for checkpoints, merges and
 /// `--reference-tally`, so an edited texture file (`.npy`, `.exr`, `.png`)
 /// that the unchanged TOML points to is a different scene.
 pub fn scene_hash(scene: &Scene) -> Result<String> {
-    let bytes = std::fs::read(&scene.path).map_err(|e| Error::io(&scene.path, e))?;
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    let mut eat = |bytes: &[u8]| {
-        for &b in bytes {
-            h = (h ^ b as u64).wrapping_mul(0x0100_0000_01b3);
-        }
-    };
-    eat(&bytes);
+    let mut parts = vec![scene.source.as_bytes().to_vec()];
     for m in scene.albedo.iter().chain(&scene.density) {
-        eat(&(m.nx as u64).to_le_bytes());
-        eat(&(m.ny as u64).to_le_bytes());
-        eat(&m.texel.to_le_bytes());
+        let mut b = Vec::with_capacity(24 + 8 * m.values.len());
+        b.extend((m.nx as u64).to_le_bytes());
+        b.extend((m.ny as u64).to_le_bytes());
+        b.extend(m.texel.to_le_bytes());
         for v in &m.values {
-            eat(&v.to_le_bytes());
+            b.extend(v.to_le_bytes());
         }
+        parts.push(b);
     }
-    Ok(format!("{h:016x}"))
+    Ok(crate::jobs::store::content_hash(
+        parts.iter().map(|p| p.as_slice()),
+    ))
 }
 
 /// The passes of a scene: (tag, constant density or None for the map).
@@ -335,11 +334,11 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
     };
     let needs_model = targets.iter().any(|t| matches!(t, Target::Model(_)));
     let basis = if needs_model {
-        let path = match scene.light {
-            LightKind::Collimated => &opts.basis,
-            LightKind::Diffuse => &opts.basis_diffuse,
+        let m = &opts.models;
+        let (model, path): (&BasisModel, &Path) = match scene.light {
+            LightKind::Collimated => (&m.basis, &m.basis_origin),
+            LightKind::Diffuse => (&m.basis_diffuse, &m.basis_diffuse_origin),
         };
-        let model = BasisModel::load(path)?;
         let want = match scene.light {
             LightKind::Collimated => "pencil",
             LightKind::Diffuse => "diffuse",
@@ -368,12 +367,12 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                 ),
             ));
         }
-        Some(Arc::new(BasisTable::new(&model)))
+        Some(Arc::new(BasisTable::new(model)))
     } else {
         None
     };
     let meta = if targets.contains(&Target::Model(Method::Learned)) {
-        Some(Arc::new(MetaModelFile::load(&opts.meta)?))
+        Some(opts.models.meta.clone())
     } else {
         None
     };
@@ -386,8 +385,7 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                 Some(missing) => {
                     let (done, model) = extend::ensure(
                         m,
-                        &opts.meta,
-                        &opts.kernels,
+                        &opts.models.training,
                         missing,
                         cache,
                         opts.run.progress,
@@ -496,9 +494,11 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                                 ));
                             }
                             let mut run_opts = opts.run.clone();
-                            run_opts.checkpoint = run_opts
-                                .checkpoint
-                                .map(|p| p.with_extension(format!("{}.ckpt", tag_or(&tag))));
+                            run_opts.checkpoint = opts.checkpoint.as_ref().map(|p| {
+                                crate::jobs::store::FileCheckpoint::arc(
+                                    p.with_extension(format!("{}.ckpt", tag_or(&tag))),
+                                )
+                            });
                             let r = run(
                                 &key,
                                 range,
@@ -517,12 +517,12 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                                 provenance: Provenance::current(),
                             };
                             let dir = opts.out.join(tag_or(&tag));
-                            crate::io::write_json_compact_atomic(
+                            crate::jobs::store::write_json_compact_atomic(
                                 &dir.join("reference.tally.json"),
                                 &doc,
                             )?;
                             if let Some(ck) = &run_opts.checkpoint {
-                                let _ = std::fs::remove_file(ck);
+                                ck.clear()?;
                             }
                             (r.tally, r.wall_s)
                         }
@@ -590,10 +590,10 @@ pub fn tag_or(tag: &str) -> &str {
 
 /// The albedo channels on one texel grid (the scene's, unless the channels
 /// differ in shape: then the exact common grid of
-/// [`super::svbssrdf::common_grid`], whose texel may be τ/2).
+/// [`crate::render::svbssrdf::common_grid`], whose texel may be τ/2).
 fn albedo_grid(scene: &Scene) -> Result<Vec<crate::forward::maps::TexelMap>> {
     let maps: Vec<_> = scene.albedo.iter().collect();
-    super::svbssrdf::common_grid(&maps).map_err(|e| Error::format(&scene.path, "albedo", e))
+    crate::render::svbssrdf::common_grid(&maps).map_err(|e| Error::format(&scene.path, "albedo", e))
 }
 
 /// Writes the pass's material as texel arrays for external renderers
@@ -611,13 +611,13 @@ fn write_maps(
     let (nx, ny) = (a[0].nx, a[0].ny);
     let albedo =
         ndarray::Array3::from_shape_fn((ny, nx, a.len()), |(i, j, c)| a[c].values[i * nx + j]);
-    crate::io::write_npy_atomic(&dir.join("albedo.npy"), &albedo)?;
+    crate::jobs::store::write_npy_atomic(&dir.join("albedo.npy"), &albedo)?;
     let density = match (pass.density, &scene.density) {
         (None, Some(m)) => ndarray::Array2::from_shape_vec((m.ny, m.nx), m.values.clone())
             .map_err(|e| Error::format(&scene.path, "density", e))?,
         (r, _) => ndarray::Array2::from_elem((1, 1), r.unwrap_or(1.0)),
     };
-    crate::io::write_npy_atomic(&dir.join("density.npy"), &density)
+    crate::jobs::store::write_npy_atomic(&dir.join("density.npy"), &density)
 }
 
 /// Writes every image and the sidecar `render.json`; returns the sidecar.
@@ -716,7 +716,7 @@ pub fn write_outputs(
         "passes": pass_docs,
         "provenance": Provenance::current(),
     });
-    crate::io::write_json_atomic(&opts.out.join("render.json"), &doc)?;
+    crate::jobs::store::write_json_atomic(&opts.out.join("render.json"), &doc)?;
     Ok(doc)
 }
 
@@ -763,7 +763,7 @@ pub fn merge_reference(inputs: &[PathBuf], out: &Path) -> Result<()> {
         tally: total,
         provenance: Provenance::current(),
     };
-    crate::io::write_json_compact_atomic(out, &doc)
+    crate::jobs::store::write_json_compact_atomic(out, &doc)
 }
 
 #[cfg(test)]

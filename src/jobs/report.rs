@@ -210,8 +210,8 @@ pub fn to_markdown(title: &str, blocks: &[Block], base: &Path) -> String {
 /// atomically; returns the HTML path.
 pub fn write_report(dir: &Path, stem: &str, title: &str, blocks: &[Block]) -> Result<PathBuf> {
     let html = dir.join(format!("{stem}.html"));
-    crate::io::write_atomic(&html, to_html(title, blocks)?.as_bytes())?;
-    crate::io::write_atomic(
+    crate::jobs::store::write_atomic(&html, to_html(title, blocks)?.as_bytes())?;
+    crate::jobs::store::write_atomic(
         &dir.join(format!("{stem}.md")),
         to_markdown(title, blocks, dir).as_bytes(),
     )?;
@@ -264,7 +264,7 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("svk-report-{}", std::process::id()));
         std::fs::create_dir_all(dir.join("sub")).unwrap();
         let png = dir.join("sub/a.png");
-        crate::render::output::write_png_bytes(&png, 1, true, &[255, 0, 0]).unwrap();
+        crate::jobs::output::write_png_bytes(&png, 1, true, &[255, 0, 0]).unwrap();
         let blocks = vec![
             Block::Heading(2, "Errors <&>".into()),
             Block::Table {

@@ -15,19 +15,19 @@
 //! | models | `stripes`, `checker` | learned with each `--models` file (K, degrees) |
 //! | bases | `stripes`, `checker` | learned with each `--bases` file (exponential terms) |
 //!
-//! Errors are [`super::job::metrics`] (both images' noise subtracted).
+//! Errors are [`super::render::metrics`] (both images' noise subtracted).
 //! Sampling is compared at equal time by the relative noise an image would
 //! have after one second, ν·√t, with ν = √(Σσ²/Σr²) its measured relative
 //! noise and t its wall time (lower is better; the estimator's cost is the
 //! same per sample up to the sampler itself).
 
-use super::estimator::{Image, Sampling};
-use super::job::{RenderOptions, Target, metrics, render_scene};
+use super::render::{RenderOptions, Target, metrics, render_scene};
 use super::report::{Block, err, num, pct};
-use super::scene::Scene;
-use super::svbssrdf::{Method, Variant};
 use crate::error::Result;
 use crate::metamodel::meta::MetaModelFile;
+use crate::render::estimator::{Image, Sampling};
+use crate::render::scene::Scene;
+use crate::render::svbssrdf::{Method, Variant};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
@@ -142,7 +142,7 @@ fn rel_noise(img: &Image, r: &Image) -> f64 {
 pub fn run(settings: &Settings, opts: &RenderOptions) -> Result<Vec<Row>> {
     let mut rows = Vec::new();
     for path in &settings.scenes {
-        let scene = Scene::load(path)?;
+        let scene = Scene::find(path)?;
         let out = opts.out.join(&scene.name);
         let reference = render_scene(
             &scene,
@@ -153,12 +153,18 @@ pub fn run(settings: &Settings, opts: &RenderOptions) -> Result<Vec<Row>> {
             },
         )?;
         for config in configs(&scene.name, settings) {
+            let mut models = opts.models.clone();
+            if let Some(p) = &config.model {
+                models = models.with_meta(p)?;
+            }
+            if let Some(p) = &config.basis {
+                models = models.with_basis(p)?;
+            }
             let o = RenderOptions {
                 targets: vec![Target::Model(config.method)],
                 variant: config.variant,
                 sampling: config.sampling,
-                meta: config.model.clone().unwrap_or_else(|| opts.meta.clone()),
-                basis: config.basis.clone().unwrap_or_else(|| opts.basis.clone()),
+                models,
                 out: out.clone(),
                 ..opts.clone()
             };
@@ -168,7 +174,7 @@ pub fn run(settings: &Settings, opts: &RenderOptions) -> Result<Vec<Row>> {
                 let m = metrics(&img.image, reference);
                 rows.push(Row {
                     scene: scene.name.clone(),
-                    pass: super::job::tag_or(&pass.tag).to_string(),
+                    pass: super::render::tag_or(&pass.tag).to_string(),
                     method: config.method.name(),
                     variant: config.variant.tag(),
                     sampling: config.sampling.name(),
@@ -463,7 +469,7 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
              \"< noise\" rows lie below it."
                 .into(),
         ));
-        use crate::plot::{Axes, Series, chart, chart_svg};
+        use crate::jobs::plot::{Axes, Series, chart, chart_svg};
         let mut plotted: Vec<Series> = Vec::new();
         for (k, (name, mut e, mut f)) in series.into_iter().enumerate() {
             e.sort_by(|a, b| a.0.total_cmp(&b.0));

@@ -1,7 +1,7 @@
 //! PNG plots (plotters, bitmap backend, text through fontconfig). One
 //! generic x–y chart ([`chart`]) serves every figure; writes are atomic.
 
-use crate::error::{Error, Result};
+use crate::error::Result;
 use crate::forward::profile::ProfileDoc;
 use plotters::prelude::*;
 use std::path::Path;
@@ -211,12 +211,7 @@ type DrawResult = std::result::Result<(), Box<dyn std::error::Error>>;
 /// Runs `draw` on a temporary sibling of `path` and renames it into place,
 /// so a failure leaves nothing behind (the error names the file).
 fn atomic(path: &Path, draw: impl FnOnce(&Path) -> DrawResult) -> Result<()> {
-    let tmp = crate::io::temp_sibling(path);
-    draw(&tmp).map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        Error::format(path, "(plot)", e)
-    })?;
-    crate::io::commit(&tmp, path)
+    crate::jobs::store::write_atomic_path(path, draw)
 }
 
 /// Draws a PNG of `size` pixels to `path`: `draw` paints on a white root

@@ -3,13 +3,13 @@
 //! (training or fresh), compare with Christensen–Burley, write the report
 //! and its plots.
 
-use super::basis::{BasisFitOutcome, fit_basis};
-use super::lm::{FitOptions, FitReport};
 use crate::error::{Error, Result};
+use crate::fit::basis::{BasisFitOutcome, fit_basis};
+use crate::fit::lm::{FitOptions, FitReport};
 use crate::forward::profile::ProfileDoc;
+use crate::jobs::plot::{Axes, Series, chart, ring_points};
 use crate::metamodel::basis::{BasisModel, ExpMixture, RadialProfile};
 use crate::metamodel::burley;
-use crate::plot::{Axes, Series, chart, ring_points};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -149,7 +149,7 @@ pub fn fit_profiles(
         },
         provenance,
     )?;
-    crate::io::write_json_atomic(out, &model)?;
+    crate::jobs::store::write_json_atomic(out, &model)?;
     let mut rows: Vec<AccuracyRow> = docs.iter().map(|d| accuracy(&model, d)).collect();
     rows.sort_by(|a, b| a.alpha.total_cmp(&b.alpha));
     let report = BasisReport {
@@ -164,7 +164,7 @@ pub fn fit_profiles(
         rd_at_one: (model.r_d(1.0), 1.0 - model.r_sp),
         wall_s: start.elapsed().as_secs_f64(),
     };
-    crate::io::write_json_atomic(&report_dir.join("report.json"), &report)?;
+    crate::jobs::store::write_json_atomic(&report_dir.join("report.json"), &report)?;
     plots(&model, &docs, &report.training_accuracy, report_dir)?;
     Ok(report)
 }
@@ -173,7 +173,9 @@ pub fn fit_profiles(
 /// JSON for an independent optimiser (tools/nlopt_check.py). The tail bin has
 /// `hi = null`; parameters are (ln A_k…, θ_k…) with B = rate_from_theta(θ).
 pub fn export_problem(doc: &ProfileDoc, k: usize) -> Result<serde_json::Value> {
-    use super::exp_mixture::{BinnedDensity, ExpMixtureFit, Order, fit_mixture, theta_from_rate};
+    use crate::fit::exp_mixture::{
+        BinnedDensity, ExpMixtureFit, Order, fit_mixture, theta_from_rate,
+    };
     use levenberg_marquardt::LeastSquaresProblem;
     let data = BinnedDensity::from_profile(doc, Order::Multi);
     let (m, rep) = fit_mixture("export", &data, k, 1, &FitOptions::default())?;

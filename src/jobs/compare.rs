@@ -12,13 +12,13 @@
 //! the reference's keeps falling, and where it crosses a model's curve is
 //! how long brute force needs to match that model.
 
-use super::analysis::{Effect, analyse};
-use super::estimator::Image;
-use super::job::{RenderOptions, Target, render_scene, write_outputs};
+use super::render::{RenderOptions, Target, render_scene, write_outputs};
 use super::report::{Block, write_report};
-use super::scene::Scene;
-use super::svbssrdf::Method;
 use crate::error::{Error, Result};
+use crate::render::analysis::{Effect, analyse};
+use crate::render::estimator::Image;
+use crate::render::scene::Scene;
+use crate::render::svbssrdf::Method;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
@@ -40,7 +40,7 @@ pub struct Curve {
 
 /// The truth-noise-subtracted relative RMSE of `m` against `t` (module docs).
 pub fn rel_error(m: &Image, t: &Image) -> f64 {
-    super::job::rel_rmse(m, t, false)
+    super::render::rel_rmse(m, t, false)
 }
 
 /// Every budget of the curves must be ≥ 1 (checked before any work).
@@ -139,7 +139,7 @@ pub fn error_vs_time(
 /// The log-log error-vs-time plot (reference dashed, models in the palette)
 /// as PNG at `path` and as SVG beside it (same stem, `.svg`).
 pub fn plot_curves(path: &Path, scene: &str, curves: &[Curve]) -> Result<()> {
-    use crate::plot::{Axes, Series, chart, chart_svg};
+    use crate::jobs::plot::{Axes, Series, chart, chart_svg};
     let series: Vec<Series> = curves
         .iter()
         .enumerate()
@@ -263,7 +263,7 @@ pub struct Comparison {
 }
 
 /// `svkernel compare` on one scene into `opts.out`: the reference and every
-/// method with metrics and images ([`super::job`]), the error-vs-time
+/// method with metrics and images ([`super::render`]), the error-vs-time
 /// curves, the scene analysis and what its skips saved; writes
 /// `compare.json`, `report.html` (self-contained) and `report.md`.
 pub fn compare_scene(
@@ -326,7 +326,7 @@ pub fn compare_scene(
         },
         "provenance": crate::provenance::Provenance::current(),
     });
-    crate::io::write_json_atomic(&opts.out.join("compare.json"), &doc)?;
+    crate::jobs::store::write_json_atomic(&opts.out.join("compare.json"), &doc)?;
     let blocks = report_blocks(&doc, &opts.out);
     write_report(
         &opts.out,
@@ -341,7 +341,7 @@ pub fn compare_scene(
 /// `learned`: nothing to simulate, or what the extension did.
 fn range_effect(
     scene: &Scene,
-    plan: &super::analysis::Plan,
+    plan: &crate::render::analysis::Plan,
     opts: &RenderOptions,
     extension: Option<&super::extend::Extension>,
 ) -> Result<Option<Effect>> {
@@ -352,7 +352,7 @@ fn range_effect(
     // Albedos to three decimals in the text.
     let r = |v: f64| (v * 1e3).round() / 1e3;
     let (lo, hi) = (r(lo), r(hi));
-    let model = crate::metamodel::meta::MetaModelFile::load(&opts.meta)?.all;
+    let model = opts.models.meta.all.clone();
     let trained = model.alpha_range;
     let effect = range_albedo_effect(plan, opts, extension, (lo, hi), trained, r);
     // The other axis of the range: the optical pair distances the image can
@@ -379,7 +379,7 @@ fn range_effect(
 
 /// The albedo half of [`range_effect`].
 fn range_albedo_effect(
-    plan: &super::analysis::Plan,
+    plan: &crate::render::analysis::Plan,
     opts: &RenderOptions,
     extension: Option<&super::extend::Extension>,
     (lo, hi): (f64, f64),

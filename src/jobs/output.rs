@@ -1,6 +1,6 @@
 //! Image files of a render: OpenEXR (one channel per colour and a
 //! standard-error channel each), PNG previews and `.npy` arrays. Every write
-//! is atomic (temporary sibling + rename, [`crate::io`]).
+//! is atomic (temporary sibling + rename, [`crate::jobs::store`]).
 //!
 //! # Tone map of the PNG previews (stated, shared by all methods of a scene)
 //! v ↦ sRGB-OETF(clamp(v/white, 0, 1)) in 8 bits, with `white` the 99.5th
@@ -10,9 +10,9 @@
 //! Signed differences use a diverging map (blue − / white 0 / red +) with
 //! full scale ±`range`.
 
-use super::estimator::Image;
 use crate::error::{Error, Result};
-use crate::io::{write_atomic, write_npy_atomic};
+use crate::jobs::store::{write_atomic, write_npy_atomic};
+use crate::render::estimator::Image;
 use std::path::Path;
 
 /// Channel names of an image with `c` channels.
@@ -233,7 +233,7 @@ mod tests {
     #[test]
     fn exr_and_png_round_trip_shapes() {
         let dir = std::env::temp_dir().join(format!("svk-out-{}", std::process::id()));
-        let mut img = super::Image::zeros(4, 3);
+        let mut img = crate::render::estimator::Image::zeros(4, 3);
         for (k, v) in img.mean.iter_mut().enumerate() {
             *v = k as f64 * 0.01;
         }

@@ -1,0 +1,255 @@
+//! What is built into the binary, so every command works from any folder
+//! and after `cargo install`: the basis BSSRDF models (pencil and diffuse
+//! incidence), the kernel meta-model, the configuration of the tallies the
+//! meta-model was trained on, and the canonical scenes.
+//!
+//! A model is found in this order: the file given by the caller (a
+//! command-line flag), the file named by the environment variable
+//! (`SVKERNEL_BASIS`, `SVKERNEL_BASIS_DIFFUSE`, `SVKERNEL_MODEL`), else the
+//! built-in copy (the same bytes as `data/profiles/*.json`). The cache of
+//! meta-model extensions is `--cache`, else `SVKERNEL_CACHE`, else the
+//! platform's cache folder ([`dirs::cache_dir`]) + `svkernel`.
+
+use crate::doc::Document;
+use crate::error::{Error, Result};
+use crate::forward::kernel::{KernelConfig, PairGrid};
+use crate::metamodel::basis::BasisModel;
+use crate::metamodel::meta::MetaModelFile;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// A model that ships with svkernel.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Shipped {
+    /// The basis BSSRDF fitted to pencil-beam profiles (collimated lights).
+    Basis,
+    /// The basis BSSRDF fitted to diffuse-incidence profiles.
+    BasisDiffuse,
+    /// The kernel meta-model.
+    Meta,
+}
+
+impl Shipped {
+    /// The environment variable that overrides the built-in copy.
+    pub fn env(self) -> &'static str {
+        match self {
+            Shipped::Basis => "SVKERNEL_BASIS",
+            Shipped::BasisDiffuse => "SVKERNEL_BASIS_DIFFUSE",
+            Shipped::Meta => "SVKERNEL_MODEL",
+        }
+    }
+
+    /// The built-in document.
+    pub fn text(self) -> &'static str {
+        match self {
+            Shipped::Basis => include_str!("../../data/profiles/basis.json"),
+            Shipped::BasisDiffuse => include_str!("../../data/profiles/basis_diffuse.json"),
+            Shipped::Meta => include_str!("../../data/profiles/metamodel.json"),
+        }
+    }
+
+    /// The name errors give the built-in copy.
+    pub fn origin(self) -> PathBuf {
+        PathBuf::from(match self {
+            Shipped::Basis => "(built-in basis.json)",
+            Shipped::BasisDiffuse => "(built-in basis_diffuse.json)",
+            Shipped::Meta => "(built-in metamodel.json)",
+        })
+    }
+
+    /// Where the model comes from: `file`, else the environment variable,
+    /// else `None` (the built-in copy).
+    pub fn source(self, file: Option<&Path>) -> Option<PathBuf> {
+        file.map(Path::to_path_buf).or_else(|| {
+            std::env::var_os(self.env())
+                .filter(|v| !v.is_empty())
+                .map(PathBuf::from)
+        })
+    }
+
+    /// Loads the model (see [`Shipped::source`]); returns it with its origin.
+    pub fn load<T: Document>(self, file: Option<&Path>) -> Result<(T, PathBuf)> {
+        match self.source(file) {
+            Some(path) => Ok((crate::jobs::store::load(&path)?, path)),
+            None => {
+                let origin = self.origin();
+                Ok((crate::doc::from_json(self.text(), &origin)?, origin))
+            }
+        }
+    }
+}
+
+/// The configuration of the kernel tallies the shipped meta-model was
+/// fitted to (`data/kernels/eta1.5_g0.3_pencil.json`); extensions of the
+/// trained albedo range simulate with it at other albedos.
+pub fn training_config() -> KernelConfig {
+    KernelConfig {
+        g: 0.3,
+        eta: 1.5,
+        density: 1.0,
+        albedos: vec![0.2, 0.4, 0.6, 0.75, 0.85, 0.92, 0.96, 0.99],
+        distances: vec![0.1, 0.2, 0.35, 0.6, 1.0, 1.6, 2.5, 4.0, 6.5, 10.0],
+        rel_width: 0.1,
+        min_order: 2,
+        paths: 20_000_000,
+        seed: 3000,
+        max_events: 1_000_000,
+        grid: PairGrid {
+            nu: 32,
+            nv: 16,
+            extent: 4.0,
+        },
+    }
+}
+
+/// The models a render uses, loaded once and shared.
+#[derive(Clone, Debug)]
+pub struct Models {
+    /// Basis BSSRDF for collimated lights, and where it came from.
+    pub basis: Arc<BasisModel>,
+    pub basis_origin: PathBuf,
+    /// Basis BSSRDF for diffuse lights.
+    pub basis_diffuse: Arc<BasisModel>,
+    pub basis_diffuse_origin: PathBuf,
+    /// The kernel meta-model (`learned`).
+    pub meta: Arc<MetaModelFile>,
+    pub meta_origin: PathBuf,
+    /// The configuration of the meta-model's training tallies.
+    pub training: KernelConfig,
+}
+
+impl Models {
+    /// The built-in models (environment variables are not read).
+    pub fn builtin() -> Result<Models> {
+        fn builtin<T: Document>(s: Shipped) -> Result<(T, PathBuf)> {
+            let o = s.origin();
+            Ok((crate::doc::from_json(s.text(), &o)?, o))
+        }
+        Ok(Models::from_parts(
+            builtin(Shipped::Basis)?,
+            builtin(Shipped::BasisDiffuse)?,
+            builtin(Shipped::Meta)?,
+        ))
+    }
+
+    /// Each model from its file if given, else its environment variable,
+    /// else the built-in copy.
+    pub fn find(
+        basis: Option<&Path>,
+        basis_diffuse: Option<&Path>,
+        meta: Option<&Path>,
+    ) -> Result<Models> {
+        Ok(Models::from_parts(
+            Shipped::Basis.load(basis)?,
+            Shipped::BasisDiffuse.load(basis_diffuse)?,
+            Shipped::Meta.load(meta)?,
+        ))
+    }
+
+    fn from_parts(
+        (b, bo): (BasisModel, PathBuf),
+        (d, dox): (BasisModel, PathBuf),
+        (m, mo): (MetaModelFile, PathBuf),
+    ) -> Models {
+        Models {
+            basis: Arc::new(b),
+            basis_origin: bo,
+            basis_diffuse: Arc::new(d),
+            basis_diffuse_origin: dox,
+            meta: Arc::new(m),
+            meta_origin: mo,
+            training: training_config(),
+        }
+    }
+
+    /// These models with the meta-model replaced by the one at `path`.
+    pub fn with_meta(&self, path: &Path) -> Result<Models> {
+        Ok(Models {
+            meta: Arc::new(MetaModelFile::load(path)?),
+            meta_origin: path.to_path_buf(),
+            ..self.clone()
+        })
+    }
+
+    /// These models with the collimated-light basis replaced by the one at
+    /// `path`.
+    pub fn with_basis(&self, path: &Path) -> Result<Models> {
+        Ok(Models {
+            basis: Arc::new(BasisModel::load(path)?),
+            basis_origin: path.to_path_buf(),
+            ..self.clone()
+        })
+    }
+}
+
+/// The cache folder: `dir` if given, else `SVKERNEL_CACHE`, else the
+/// platform's cache folder + `svkernel` (e.g. `~/.cache/svkernel`).
+pub fn cache_dir(dir: Option<&Path>) -> Result<PathBuf> {
+    if let Some(d) = dir {
+        return Ok(d.to_path_buf());
+    }
+    if let Some(d) = std::env::var_os("SVKERNEL_CACHE").filter(|v| !v.is_empty()) {
+        return Ok(PathBuf::from(d));
+    }
+    dirs::cache_dir()
+        .map(|d| d.join("svkernel"))
+        .ok_or_else(|| {
+            Error::format(
+                "(cache)",
+                "cache",
+                "no cache folder on this platform: give --cache DIR or set SVKERNEL_CACHE",
+            )
+        })
+}
+
+/// The canonical scenes, by name, as TOML.
+pub const SCENES: &[(&str, &str)] = &[
+    ("stripes", include_str!("../../scenes/stripes.toml")),
+    ("checker", include_str!("../../scenes/checker.toml")),
+    ("complex", include_str!("../../scenes/complex.toml")),
+    ("color", include_str!("../../scenes/color.toml")),
+    ("density", include_str!("../../scenes/density.toml")),
+    ("features", include_str!("../../scenes/features.toml")),
+];
+
+/// The built-in scene called `name`.
+pub fn scene_text(name: &str) -> Option<&'static str> {
+    SCENES.iter().find(|(n, _)| *n == name).map(|(_, t)| *t)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn built_in_models_parse_and_match_the_data_folder() {
+        let m = Models::builtin().unwrap();
+        let on_disk = BasisModel::load(Path::new("data/profiles/basis.json")).unwrap();
+        assert_eq!(
+            serde_json::to_value(&*m.basis).unwrap(),
+            serde_json::to_value(&on_disk).unwrap()
+        );
+        assert_eq!(m.basis_diffuse.incidence, "diffuse");
+        assert!(m.meta.all.alpha_range[0] < m.meta.all.alpha_range[1]);
+    }
+
+    #[test]
+    fn training_config_is_the_shipped_tallies_one() {
+        let doc = crate::forward::kernel::KernelDoc::load(Path::new(
+            "data/kernels/eta1.5_g0.3_pencil.json",
+        ))
+        .unwrap();
+        assert_eq!(
+            serde_json::to_value(&doc.config).unwrap(),
+            serde_json::to_value(training_config()).unwrap()
+        );
+    }
+
+    #[test]
+    fn every_scene_is_built_in() {
+        for (name, text) in SCENES {
+            assert!(text.contains(&format!("name = \"{name}\"")), "{name}");
+        }
+        assert!(scene_text("stripes").is_some() && scene_text("nope").is_none());
+    }
+}
