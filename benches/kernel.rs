@@ -1,5 +1,5 @@
-//! Evaluation time of the learned kernel meta-model (issue 5 target: < 100 ns
-//! for K = 3) against the manual kernel's construction, on the shipped model.
+//! Evaluation time of the learned kernel meta-model (< 100 ns for K = 3 is the
+//! aim) against the manual kernel's construction, on the shipped model.
 //! `cargo bench --bench kernel`.
 
 use criterion::{Criterion, criterion_group, criterion_main};

@@ -1,5 +1,5 @@
 //! Cost of one SV-BSSRDF evaluation S(x_i, x_e) per method and pair distance
-//! (issue 6 target: `learned` < 200 ns and flat in d; `line` and `ellipse`
+//! (aim: `learned` < 200 ns and flat in d; `line` and `ellipse`
 //! grow with d), on the `stripes` texture (τ = 0.05 MFP) with a density
 //! ramp, so that every aggregate is density-scaled. Pairs at distance d in
 //! 64 directions from spread-out entry points. The `pyramid` group times the

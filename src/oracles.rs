@@ -1,4 +1,4 @@
-//! Reference values from `shared/oracles.md`, as data: the tests and the demo
+//! Reference values (exact H-function results and adding-doubling tables), as data: the tests and the demo
 //! compare simulations with them. Lengths in MFP; R_d excludes the specular
 //! reflection.
 

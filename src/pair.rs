@@ -1,5 +1,5 @@
 //! The pair frame shared by the forward estimator, the fits and the models
-//! (design §2, "Frames for kernels"): for entry x_i and exit x_e at distance
+//! (docs/design.md §2, "Frames for kernels"): for entry x_i and exit x_e at distance
 //! d, t runs along the axis from x_i (t = 0) to x_e (t = d) and s across it;
 //! kernels are symmetric in s. Lengths in MFP.
 

@@ -1,4 +1,4 @@
-//! Provenance recorded in every output (style rule 11): what made it.
+//! Provenance recorded in every output: what made it.
 
 use serde::{Deserialize, Serialize};
 

@@ -1,4 +1,4 @@
-//! The basis BSSRDF (issue 4): the shipped model and the fits behind it.
+//! The basis BSSRDF: the shipped model and the fits behind it.
 //! Uses the shipped data in `data/profiles/`.
 
 use std::path::Path;

@@ -1,4 +1,4 @@
-//! Fuzzing the scene parser and the file loaders (issue 7 §7) with
+//! Fuzzing the scene parser and the file loaders with
 //! proptest: mutated scene TOML, mutated `.npy` / `.png` / `.exr` textures
 //! behind a valid scene, and mutated model and tally files. Every input
 //! must load or give an error that names the file: never a panic.

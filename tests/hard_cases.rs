@@ -1,4 +1,4 @@
-//! Hard cases (issue 3): extreme parameters produce finite, consistent
+//! Hard cases: extreme parameters produce finite, consistent
 //! results and no panic, in both engines.
 
 use svkernel::forward::medium::{Medium, Source};

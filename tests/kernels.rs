@@ -1,4 +1,4 @@
-//! The path-density estimator (issue 5 §1): determinism, the density scaling
+//! The path-density estimator: determinism, the density scaling
 //! law, the sensitivity identity, hard cases.
 
 use svkernel::forward::kernel::{

@@ -1,4 +1,4 @@
-//! The shipped kernel meta-model (issue 5 §2–3) and the `kernel` query.
+//! The shipped kernel meta-model and the `kernel` query.
 
 use std::path::Path;
 use std::process::Command;

@@ -1,4 +1,4 @@
-//! Tier (c): the simulator against `shared/oracles.md` (style rule 10).
+//! Tier (c): the simulator against the oracle values of `svkernel::oracles`.
 //!
 //! Every check passes when |estimate − oracle| ≤ Z_MC·stderr + accuracy of
 //! the oracle value. The default tier uses modest path counts (the whole file

@@ -1,4 +1,4 @@
-//! Reliability sweep through the CLI (issue 7 §7): bad and extreme inputs
+//! Reliability sweep through the CLI: bad and extreme inputs
 //! give a clear error naming the file and the key, a non-zero exit, no
 //! panic, and no output left behind.
 

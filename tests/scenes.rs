@@ -1,4 +1,4 @@
-//! Every shipped scene loads and is what design §5 says it is.
+//! Every shipped scene loads and is what docs/design.md §5 says it is.
 
 use std::path::Path;
 use svkernel::render::scene::{LightKind, Scene};

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Error vs kernel complexity and meta-model size (issue 7 §2): refits the
+# Error vs kernel complexity and meta-model size: refits the
 # kernel meta-model from the shipped kernel tallies with K = 1…5 Gaussians
 # (polynomial degrees 3, 3) and with degrees 1…4 at K = 3, and the basis
 # BSSRDF from the shipped profiles with 3, 4, 6 and 8 exponential terms,

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# R_d of the simulator against shared/oracles.md: the exact η = 1, g = 0 row
+# R_d of the simulator against the oracle values (src/oracles.rs): the exact η = 1, g = 0 row
 # (Chandrasekhar's H-function) and the adding-doubling row of the default
 # medium (η = 1.5, g = 0.3), 1e7 paths per albedo (lanes engine), as a
 # Markdown table with z = (sim − oracle)/stderr. About a minute on 2 cores.

@@ -2,7 +2,7 @@
 # Fresh, independent simulations at albedos that are NOT in the training grid
 # (midpoints in sqrt(1 − α) of tools/make_profiles.sh's grid, α ≥ 0.2, plus
 # 0.9995 beyond the last training albedo), then the accuracy of the shipped
-# basis model against them (issue 4's targets: R_d within 0.5 %, radial L2
+# basis model against them (the accuracy aims: R_d within 0.5 %, radial L2
 # over r ∈ [0.01, 20] MFP ≤ 2 % of R_d; Christensen–Burley in the same table).
 #
 #   bash tools/validate_basis.sh     # writes out/validate_basis/{a*.json,check.json}

@@ -1,5 +1,5 @@
 //! Joint fit of the smooth-in-albedo basis BSSRDF ([`BasisModel`]) to a set
-//! of simulated profiles (issue 4 item 3).
+//! of simulated profiles.
 //!
 //! Residuals: for every profile i and ring j, (m_ij − y_ij)/σ_ij with m the
 //! exact ring average of p_m(r; α_i) (see [`super::exp_mixture`]); plus one

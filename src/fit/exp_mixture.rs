@@ -1,5 +1,5 @@
 //! Per-profile fit of an exponential mixture to a binned radial density
-//! (design §3 step 2a, issue 4 item 2).
+//! (docs/design.md §3 step 2a).
 //!
 //! Data: ring averages y_j of p(r) over [lo_j, hi_j] with standard errors,
 //! and the energy beyond the last ring (a "tail bin" with hi = ∞ whose y is

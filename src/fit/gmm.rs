@@ -1,10 +1,10 @@
 //! Per-configuration fit of a Gaussian-mixture kernel to a measured kernel
-//! histogram (design §3 step 2b: one GMM per simulated (α, d), the
+//! histogram (docs/design.md §3 step 2b: one GMM per simulated (α, d), the
 //! initialisation of the meta-model).
 //!
 //! # Data
 //! A [`KernelHistogram`]: the fraction of unit mass in each bin of a
-//! (t, |s|) grid of the pair frame (absolute MFP, design §2), folded in |s|,
+//! (t, |s|) grid of the pair frame (absolute MFP, docs/design.md §2), folded in |s|,
 //! plus the mass that fell outside the grid (the overflow), with standard
 //! errors.
 //!

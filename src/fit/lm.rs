@@ -2,7 +2,7 @@
 //! [`levenberg_marquardt::LeastSquaresProblem`] solved by [`solve`], which
 //! returns the solved problem with a [`FitReport`] — never a silent result.
 //!
-//! Conventions shared by every problem (style rule 6):
+//! Conventions shared by every problem:
 //! * parameters live in unconstrained space (logarithms of positive
 //!   quantities), so any parameter vector is a valid model;
 //! * residuals are weighted by the data's standard errors,
@@ -42,7 +42,7 @@ pub trait Blocks {
     fn blocks(&self) -> Vec<(String, Range<usize>)>;
 }
 
-/// What a fit reports (style rule 7).
+/// What a fit reports.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct FitReport {
     /// What was fitted.

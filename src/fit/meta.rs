@@ -1,4 +1,4 @@
-//! The joint fit of the kernel meta-model (design §3 step 2(c)): the
+//! The joint fit of the kernel meta-model (docs/design.md §3 step 2(c)): the
 //! Gaussian-mixture parameters as tensor Chebyshev polynomials in
 //! (ln d, sqrt(1 − α)) ([`crate::metamodel::meta`]), fitted by LM with exact
 //! Jacobians to every measured histogram at once, initialised from the

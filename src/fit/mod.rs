@@ -1,4 +1,4 @@
-//! Least-squares fitting (design §3 step 2): the Levenberg–Marquardt layer
+//! Least-squares fitting (docs/design.md §3 step 2): the Levenberg–Marquardt layer
 //! ([`lm`]), per-profile exponential mixtures ([`exp_mixture`]) and the
 //! smooth-in-albedo basis BSSRDF ([`basis`]), per-configuration Gaussian
 //! mixtures of the kernel histograms ([`gmm`]) and the joint kernel

@@ -1,11 +1,11 @@
-//! The path-density estimator (design §1, §3 step 1): where the paths that
+//! The path-density estimator (docs/design.md §1, §3 step 1): where the paths that
 //! connect an entry point x_i to an exit point x_e scatter.
 //!
 //! # What is measured
 //! A normal-incidence pencil beam enters the homogeneous half-space at
 //! x_i = 0. A path that leaves through the surface at x_e after `n ≥
 //! min_order` scatterings (default 2: the multiple-scattering transport that
-//! the aggregated albedo α_t serves, design §4) *contributes* to the distance
+//! the aggregated albedo α_t serves, docs/design.md §4) *contributes* to the distance
 //! bin holding d_p = |x_e| (bins [d(1 − w), d(1 + w)]). Its scattering
 //! vertices are expressed in the path's own pair frame: t = v·ê along the axis
 //! from x_i (t = 0) to x_e (t = d_p), s = v·ê⊥ across it (depth integrated

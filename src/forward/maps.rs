@@ -1,4 +1,4 @@
-//! Piecewise-constant 2.5D material maps (design §2): a texture of `nx × ny`
+//! Piecewise-constant 2.5D material maps (docs/design.md §2): a texture of `nx × ny`
 //! texels of size τ (MFP), extruded in depth, looked up nearest-neighbour
 //! with the edge texel extending outside.
 //!

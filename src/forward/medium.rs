@@ -60,7 +60,7 @@ impl Medium {
     }
 }
 
-/// The illumination (design §2 "Lights").
+/// The illumination (docs/design.md §2 "Lights").
 ///
 /// The string form used by the CLI is `pencil`, `collimated:R` or `diffuse:R`
 /// with R the disk radius in MFP.

@@ -1,4 +1,4 @@
-//! Forward Monte Carlo simulation of sub-surface transport (design §3 step 1).
+//! Forward Monte Carlo simulation of sub-surface transport (docs/design.md §3 step 1).
 //!
 //! Physics only: the medium and sources ([`medium`]), Fresnel ([`fresnel`]),
 //! pure samplers ([`sampling`]), per-path random streams ([`rng`]), the walk

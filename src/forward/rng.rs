@@ -3,7 +3,7 @@
 //! Path `i` of a simulation with master seed `seed` draws every random number
 //! from its own xoshiro128++ generator (Blackman & Vigna 2019,
 //! <https://prng.di.unimi.it/>) whose 128-bit state is the SplitMix64 hash of `(seed, i)`
-//! (style rule 9: a small generator must hash `(seed, i)` first). The stream
+//! (a small generator must hash `(seed, i)` first). The stream
 //! is therefore a pure function of (seed, path index, draw number): no state
 //! is shared between paths, so the result of a simulation does not depend on
 //! the thread count, the chunking or the sharding. The scalar and the

@@ -1,5 +1,5 @@
 //! Pure samplers: each takes uniforms in [0, 1) and returns a sample; each has
-//! its pdf beside it (style rule 2). Physics code never sees a generator.
+//! its pdf beside it. Physics code never sees a generator.
 
 use std::f64::consts::PI;
 

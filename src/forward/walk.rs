@@ -124,7 +124,7 @@ pub enum Fate {
 
 /// Where the walk reads the single-scattering albedo: the integer scatter
 /// threshold t = α·2³² ([`threshold_u32`]) at a collision at (x, y).
-/// Material maps are 2.5D (design §2), so depth does not enter.
+/// Material maps are 2.5D (docs/design.md §2), so depth does not enter.
 pub trait AlbedoField {
     fn threshold(&self, x: f64, y: f64) -> u64;
 }

@@ -1,4 +1,4 @@
-//! What accuracy costs in time (issue 7 §2, first part): for one scene, the
+//! What accuracy costs in time: for one scene, the
 //! error of every method and of the brute-force reference as their sample
 //! budgets grow, against a high-budget reference ("truth") rendered with an
 //! independent seed.

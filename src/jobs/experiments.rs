@@ -1,4 +1,4 @@
-//! The open experiments of the design, answered with numbers (issue 7 §3,
+//! The open experiments of the design, answered with numbers (
 //! and the model-cost side of §2): `svkernel experiments`.
 //!
 //! Every scene's reference is rendered once; each experiment then renders

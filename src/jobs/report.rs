@@ -1,4 +1,4 @@
-//! Reports (issue 7 §1): one small document model, written both as a
+//! Reports: one small document model, written both as a
 //! self-contained HTML page (images embedded as `data:` URIs, opens in a
 //! browser with no server) and as Markdown (images linked by relative path).
 //!

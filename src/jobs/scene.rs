@@ -1,5 +1,5 @@
 //! Scenes: TOML files that name the medium, the material maps, the light, the
-//! image and the methods to render (issue 6 §1, design §5).
+//! image and the methods to render (docs/design.md §5; the schema for users is docs/scenes.md).
 //!
 //! # Schema
 //!
@@ -63,7 +63,7 @@ use crate::render::svbssrdf::Method;
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 
-/// The methods a scene can ask for (design §4's table), by name.
+/// The methods a scene can ask for (docs/design.md §4's table), by name.
 pub fn method_names() -> Vec<&'static str> {
     Method::ALL.iter().map(|m| m.name()).collect()
 }

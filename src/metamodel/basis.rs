@@ -1,4 +1,4 @@
-//! The basis BSSRDF (design §3 step 2a, §4): radial densities as exponential
+//! The basis BSSRDF (docs/design.md §3 step 2a, §4): radial densities as exponential
 //! mixtures, smooth in albedo. Pure evaluation, closed forms and sampling;
 //! the fitting lives in [`crate::fit::basis`].
 
@@ -19,7 +19,7 @@ use serde::{Deserialize, Serialize};
 /// with P the regularised lower incomplete gamma function (P(1, x) = 1 − e^{−x},
 /// P(2, x) = 1 − e^{−x}(1 + x)); sampling picks component k with
 /// probability A_k n!/B_k^{n+1}/E, then r ~ Gamma(n+1, B_k):
-/// r = −(ln u₁ + … + ln u_{n+1})/B_k (exact, design §4).
+/// r = −(ln u₁ + … + ln u_{n+1})/B_k (exact, docs/design.md §4).
 ///
 /// # Units / domain
 /// r in MFP ≥ 0; B_k in 1/MFP; A_k in 1/MFP^{n+1}.

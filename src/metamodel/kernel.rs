@@ -1,4 +1,4 @@
-//! Aggregation kernels as Gaussian mixtures (design §2 "Frames for kernels",
+//! Aggregation kernels as Gaussian mixtures (docs/design.md §2 "Frames for kernels",
 //! §4 "Aggregation" and "The manual kernel"). Pure evaluation and
 //! (de)serialisation; the per-configuration fit lives in [`crate::fit::gmm`].
 //!
@@ -13,11 +13,11 @@
 //! K(t, s) = Σ_k w_k·N₂((t, s); (t_k, s_k), σ_k²·I) with
 //! N₂(x; μ, σ²I) = exp(−|x − μ|²/(2σ²))/(2πσ²): isotropic components, so
 //! that aggregation under one component is one lookup in a Gaussian pyramid
-//! (design §4). Our kernels keep every centre on the axis (s_k = 0), which
+//! (docs/design.md §4). Our kernels keep every centre on the axis (s_k = 0), which
 //! makes them exactly symmetric in s; the field stays in the JSON contract
 //! `{ "weight", "t", "s", "sigma" }`.
 //!
-//! # Density scaling (design §2, §4)
+//! # Density scaling (docs/design.md §2, §4)
 //! A homogeneous medium of density ρ has σ_t = ρ, so a length ℓ in it is the
 //! optical length ρℓ in the reference medium: all lengths scale by 1/ρ,
 //! K(·; d, α, ρ) = K(·; ρd, α, 1) with every length (t, s, σ) divided by ρ.
@@ -231,7 +231,7 @@ impl Gmm {
     }
 }
 
-/// The manual kernel at distance d (MFP, d ≥ 0), design §4, fixed and never
+/// The manual kernel at distance d (MFP, d ≥ 0), docs/design.md §4, fixed and never
 /// tuned against render errors: three isotropic Gaussians on the axis at
 /// t = 0, d/2, d with weights 0.25, 0.5, 0.25 and widths
 /// σ = 0.5, 0.5 + 0.3·d, 0.5 MFP. It stands in for the seed's hand fit, whose
@@ -262,7 +262,7 @@ pub fn optical_distance(d: f64, rho: f64) -> f64 {
     d * rho
 }
 
-/// The density scaling law, implemented once (design §2, §4).
+/// The density scaling law, implemented once (docs/design.md §2, §4).
 ///
 /// In a homogeneous medium of density ρ > 0 (σ_t = ρ) every length scales by
 /// 1/ρ: K(·; d, α, ρ) = K(·; ρd, α, 1) with all lengths divided by ρ. The
@@ -351,7 +351,7 @@ mod tests {
             assert!((k.mean_t() - 0.5 * d).abs() < 1e-12 * (1.0 + d));
             assert!(k.density(0.5 * d, 0.0).is_finite() && k.density(0.5 * d, 0.0) > 0.0);
         }
-        // The exact layout of design §4 at d = 2.
+        // The exact layout of docs/design.md §4 at d = 2.
         let k = manual_kernel(2.0);
         let want = [(0.25, 0.0, 0.5), (0.5, 1.0, 1.1), (0.25, 2.0, 0.5)];
         for (c, w) in k.components.iter().zip(want) {

@@ -1,5 +1,5 @@
 //! The learned meta-model: (d, α, ρ) → Gaussian-mixture aggregation kernel
-//! (design §3 step 3, §4), evaluated on the fly.
+//! (docs/design.md §3 step 3, §4), evaluated on the fly.
 //!
 //! # Parameterisation
 //! For pair distance d at unit density, with λ = d/2 + 1 MFP (the
@@ -26,7 +26,7 @@
 //! (`clamped` is reported). Inside the box, cells with too few contributing
 //! paths to fit ([`crate::fit::meta::MIN_PATHS`]: the low-albedo corners)
 //! have no data, and there the polynomials extrapolate from their
-//! neighbours (README, "Where the meta-model has no data").
+//! neighbours (docs/method.md §4, "Where the meta-model has no data").
 //!
 //! Density: K(·; d, α, ρ) = K(·; ρd, α, 1) with lengths divided by ρ
 //! ([`super::kernel::scale_for_density`]).

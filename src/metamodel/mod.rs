@@ -1,4 +1,4 @@
-//! Pure models: parameters in, profile or kernel out (design §3 step 3).
+//! Pure models: parameters in, profile or kernel out (docs/design.md §3 step 3).
 //! No I/O beyond (de)serialisation.
 
 pub mod basis;

@@ -1,4 +1,4 @@
-//! Scene analysis: simulate only the effects a scene calls for (issue 7 §4).
+//! Scene analysis: simulate only the effects a scene calls for.
 //!
 //! Before rendering, [`analyse`] looks at the loaded maps and the light and
 //! decides what work the scene needs:

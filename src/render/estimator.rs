@@ -1,4 +1,4 @@
-//! One Monte Carlo estimator for every model method (design §4 "Estimator").
+//! One Monte Carlo estimator for every model method (docs/design.md §4 "Estimator").
 //!
 //! # What is estimated
 //! Pixel (i, j) of an N×N image of half-width W holds the average over its

@@ -1,6 +1,6 @@
 //! Gaussian pyramid of a texel map: the Gaussian-weighted average
 //! ∫ N(x; μ, σ²I) f(x) dx of a piecewise-constant map in a bounded number of
-//! reads, whatever μ and σ (design §4, "Aggregation in O(1)").
+//! reads, whatever μ and σ (docs/design.md §4, "Aggregation in O(1)").
 //!
 //! # What is computed
 //! For a [`TexelMap`] f (nearest-neighbour, the edge texel extending to

@@ -1,4 +1,4 @@
-//! The brute-force reference (design §4 table, `reference`): analog Monte
+//! The brute-force reference (docs/design.md §4 table, `reference`): analog Monte
 //! Carlo of the heterogeneous 2.5D half-space, no model.
 //!
 //! # What is simulated

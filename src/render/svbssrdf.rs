@@ -1,4 +1,4 @@
-//! The SV-BSSRDF S(x_i, x_e) of every method of design §4, evaluated from
+//! The SV-BSSRDF S(x_i, x_e) of every method of docs/design.md §4, evaluated from
 //! the basis profile ([`crate::metamodel::basis`]) and the aggregation
 //! kernels ([`crate::metamodel`]).
 //!
@@ -29,7 +29,7 @@
 //! by texel row (exact in x from row prefix sums, midpoint in y; cost ∝ the
 //! ellipse's height in texels, ∝ d).
 //!
-//! `manual` and `learned` use the split form (design §4): α₁ = α_i (under
+//! `manual` and `learned` use the split form (docs/design.md §4): α₁ = α_i (under
 //! collimated normal incidence the single-scattering vertex lies straight
 //! below x_i), α_t = Σ_k w_k (G_σk ∗ ρα)(μ_k)/Σ_k w_k (G_σk ∗ ρ)(μ_k) and
 //! ρ̄ = Σ_k w_k (G_σk ∗ ρ)(μ_k) from Gaussian pyramids ([`super::pyramid`]),
@@ -64,7 +64,7 @@ use std::sync::Arc;
 /// Smallest r (MFP) at which S is evaluated.
 pub const R_MIN: f64 = 1e-6;
 
-/// The methods of design §4's table (the reference is rendered separately).
+/// The methods of docs/design.md §4's table (the reference is rendered separately).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Method {
     Point,
@@ -120,7 +120,7 @@ impl Method {
 /// Options of the kernel methods (module docs). The default aggregates the
 /// local terms under the first- and last-vertex kernels (`vertex_kernels`):
 /// measured on the canonical scenes it cuts the learned method's relative
-/// RMSE 4–12× against point albedos (README, "Render"); for `manual`, whose
+/// RMSE 4–12× against point albedos (docs/measurements.md); for `manual`, whose
 /// vertex kernels are points, it changes nothing.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct Variant {
@@ -548,7 +548,7 @@ impl SvBssrdf {
     }
 
     /// The all-vertex kernel at (d, α₀, ρ₀) in physical MFP, into `out`:
-    /// the meta-model's for `learned`, else the manual kernel (design §4) at
+    /// the meta-model's for `learned`, else the manual kernel (docs/design.md §4) at
     /// the optical distance ρ₀d with lengths divided by ρ₀ (the density law).
     #[inline]
     fn all_kernel(&self, d: f64, alpha0: f64, rho0: f64, out: &mut Gmm) {
