@@ -1,6 +1,7 @@
 //! `svkernel` command line: parses arguments and calls the library.
 
 use anyhow::{Context, Result, bail};
+use clap::builder::RangedU64ValueParser;
 use clap::{Args, Parser, Subcommand};
 use std::io::IsTerminal;
 use std::path::PathBuf;
@@ -10,11 +11,14 @@ use svkernel::forward::medium::{Medium, Source};
 use svkernel::forward::profile::{self, DEFAULT_MAX_EVENTS, Engine, ProfileConfig, ProfileDoc};
 use svkernel::forward::runner::{RunOptions, Shard, chunk_range};
 use svkernel::forward::tally::RadialBins;
+use svkernel::jobs::render::Target;
 use svkernel::jobs::shipped::{Models, Shipped, cache_dir};
 use svkernel::jobs::store::FileCheckpoint;
 use svkernel::metamodel::basis::BasisModel;
 use svkernel::metamodel::meta::MetaModelFile;
+use svkernel::pair::VertexClass;
 use svkernel::provenance::Provenance;
+use svkernel::render::estimator::Sampling;
 
 #[derive(Parser)]
 #[command(
@@ -68,9 +72,9 @@ enum Command {
         albedo: f64,
         #[arg(long, default_value_t = 1.0)]
         density: f64,
-        /// all | first | last
-        #[arg(long, default_value = "all")]
-        vertices: String,
+        /// Which scattering vertices the kernel describes.
+        #[arg(long, value_enum, default_value = "all")]
+        vertices: VertexClass,
         /// The fixed manual kernel (docs/design.md §4) instead of the meta-model.
         #[arg(long)]
         manual: bool,
@@ -90,7 +94,7 @@ enum Command {
     Compare {
         scene: PathBuf,
         /// Samples per pixel of the main render (default: the scene's).
-        #[arg(long)]
+        #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
         spp: Option<u32>,
         /// Reference paths of the main render (default: the scene's).
         #[arg(long, value_parser = parse_count)]
@@ -110,9 +114,9 @@ enum Command {
         /// Render everything in full, even effects the scene does not call for.
         #[arg(long)]
         no_analysis: bool,
-        /// uniform | importance | mis
-        #[arg(long, default_value = "importance")]
-        sampling: String,
+        /// How entry points x_i are sampled.
+        #[arg(long, value_enum, default_value = "importance")]
+        sampling: Sampling,
         #[arg(long, default_value_t = 1)]
         seed: u64,
         #[command(flatten)]
@@ -183,7 +187,7 @@ struct ExperimentsArgs {
     )]
     scenes: Vec<PathBuf>,
     /// Samples per pixel of every model render.
-    #[arg(long, default_value_t = 256)]
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..))]
     spp: u32,
     /// Reference paths per scene and pass.
     #[arg(long, default_value = "1e7", value_parser = parse_count)]
@@ -212,17 +216,17 @@ struct RenderArgs {
     /// Methods to render (comma-separated or repeated): reference, point,
     /// factorized, line, ellipse, manual, learned. Default: the scene's
     /// methods and the reference.
-    #[arg(long = "method", value_delimiter = ',')]
-    methods: Vec<String>,
+    #[arg(long = "method", value_enum, value_delimiter = ',')]
+    methods: Vec<Target>,
     /// Light samples per pixel of the model methods (default: the scene's `samples`).
-    #[arg(long)]
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     spp: Option<u32>,
     /// Image resolution N (N × N; default: the scene's `image.resolution`).
-    #[arg(long)]
+    #[arg(long, value_parser = RangedU64ValueParser::<usize>::new().range(1..=4096))]
     resolution: Option<usize>,
-    /// uniform | importance | mis
-    #[arg(long, default_value = "importance")]
-    sampling: String,
+    /// How entry points x_i are sampled.
+    #[arg(long, value_enum, default_value = "importance")]
+    sampling: Sampling,
     /// Render everything in full, even effects the scene does not call
     /// for (grey RGB as three channels, a constant density map through a
     /// pyramid, a homogeneous material through every method's machinery).
@@ -316,8 +320,8 @@ enum Fit {
         /// Directory for report.json (default: OUT's directory/metamodel_report)
         #[arg(long)]
         report: Option<PathBuf>,
-        /// Gaussian components K (1–5).
-        #[arg(long, default_value_t = 3)]
+        /// Gaussian components K.
+        #[arg(long, default_value_t = 3, value_parser = RangedU64ValueParser::<usize>::new().range(1..=5))]
         components: usize,
         /// Polynomial degrees in ln d and sqrt(1 − α), e.g. 3,3.
         #[arg(long, value_delimiter = ',', default_value = "3,3")]
@@ -332,9 +336,9 @@ enum Fit {
         /// Meta-model [default: $SVKERNEL_MODEL, else built in].
         #[arg(long)]
         model: Option<PathBuf>,
-        /// all | last
-        #[arg(long, default_value = "all")]
-        vertices: String,
+        /// all or last (the first-vertex kernel is exact: no fit).
+        #[arg(long, value_enum, default_value = "all")]
+        vertices: VertexClass,
         /// Cells to export (spread over the training set).
         #[arg(long, default_value_t = 6)]
         cells: usize,
@@ -482,9 +486,9 @@ struct ProfileArgs {
     /// pencil | collimated:R | diffuse:R (R in MFP).
     #[arg(long, default_value = "pencil")]
     source: String,
-    /// lanes (8-wide f32 SIMD, default) or scalar (plain f64).
-    #[arg(long, default_value = "lanes")]
-    engine: String,
+    /// lanes (8-wide f32 SIMD) or scalar (plain f64).
+    #[arg(long, value_enum, default_value = "lanes")]
+    engine: Engine,
     /// Also write the per-bin arrays as OUT.npy.
     #[arg(long)]
     npy: bool,
@@ -570,11 +574,7 @@ fn simulate_profile(a: ProfileArgs) -> Result<()> {
     let medium = Medium::new(a.albedo, m.g, m.eta, m.density, a.thickness)?;
     let source = Source::parse(&a.source)?;
     let (shard, opts) = a.run.options()?;
-    let engine = match a.engine.as_str() {
-        "lanes" => Engine::Lanes,
-        "scalar" => Engine::Scalar,
-        e => bail!("invalid engine = {e}: must be lanes or scalar"),
-    };
+    let engine = a.engine;
     let config = ProfileConfig {
         medium,
         source,
@@ -798,9 +798,6 @@ fn fit(f: Fit) -> Result<()> {
             degree,
         } => {
             use svkernel::jobs::fit_kernels;
-            if !(1..=5).contains(&components) {
-                bail!("invalid --components = {components}: must be in 1..=5");
-            }
             let [dx, dy] = degree[..] else {
                 bail!("invalid --degree: give two degrees, e.g. 3,3");
             };
@@ -813,7 +810,7 @@ fn fit(f: Fit) -> Result<()> {
                     .join("metamodel_report")
             });
             let r = fit_kernels::fit_kernels(&input, &out, &dir, components, (dx, dy), true)?;
-            println!("{}", fit_kernels::aggregation_table(&r.aggregation));
+            print!("{}", fit_kernels::aggregation_summary(&r.aggregation));
             for j in &r.joint {
                 println!(
                     "{}: {} after {} evaluations, χ²/dof = {:.3}, {:.1} s",
@@ -821,8 +818,9 @@ fn fit(f: Fit) -> Result<()> {
                 );
             }
             println!(
-                "wrote {} and {}/report.json in {:.1} s",
+                "wrote {} and {}/report.json (every cell: {}/aggregation.md) in {:.1} s",
                 out.display(),
+                dir.display(),
                 dir.display(),
                 r.wall_s
             );
@@ -835,7 +833,7 @@ fn fit(f: Fit) -> Result<()> {
             out,
         } => {
             use svkernel::forward::kernel::{KernelDoc, VertexClass};
-            let class = VertexClass::parse(&vertices)?;
+            let class = vertices;
             if class == VertexClass::First {
                 bail!("invalid --vertices first: the first-vertex kernel is exact (no fit)");
             }
@@ -909,11 +907,10 @@ fn kernel_query(
     d: f64,
     albedo: f64,
     density: f64,
-    vertices: &str,
+    vertices: VertexClass,
     manual: bool,
     model: Option<&std::path::Path>,
 ) -> Result<()> {
-    use svkernel::forward::kernel::VertexClass;
     if !(d >= 0.0 && d.is_finite()) {
         bail!("invalid --d = {d}: must be finite and >= 0");
     }
@@ -923,7 +920,7 @@ fn kernel_query(
     if !(density > 0.0 && density.is_finite()) {
         bail!("invalid --density = {density}: must be finite and > 0");
     }
-    let class = VertexClass::parse(vertices)?;
+    let class = vertices;
     let (gmm, clamped, source) = if manual {
         (
             svkernel::metamodel::kernel::manual_kernel(d),
@@ -978,7 +975,7 @@ struct CompareArgs {
     paths: Option<u64>,
     curves: Option<(u64, Vec<u32>, Vec<u64>)>,
     analysis: bool,
-    sampling: String,
+    sampling: Sampling,
     seed: u64,
     models: ModelArgs,
     out: PathBuf,
@@ -988,13 +985,9 @@ struct CompareArgs {
 fn compare(a: CompareArgs) -> Result<()> {
     use svkernel::jobs::compare::{CompareSettings, compare_scene};
     use svkernel::jobs::render::RenderOptions;
-    use svkernel::render::estimator::Sampling;
     let scene = svkernel::render::scene::Scene::find(&a.scene)?;
-    if a.spp == Some(0) {
-        bail!("invalid --spp = 0: must be >= 1");
-    }
     let opts = RenderOptions {
-        sampling: Sampling::parse(&a.sampling)?,
+        sampling: a.sampling,
         seed: a.seed,
         spp: a.spp,
         reference_paths: a.paths,
@@ -1066,9 +1059,6 @@ fn experiments(a: ExperimentsArgs) -> Result<()> {
     } = a;
     use svkernel::jobs::experiments::{Settings, report, run};
     use svkernel::jobs::render::RenderOptions;
-    if spp == 0 {
-        bail!("invalid --spp = 0: must be >= 1");
-    }
     let opts = RenderOptions {
         spp: Some(spp),
         reference_paths: Some(paths),
@@ -1155,29 +1145,18 @@ fn checkpoint_interval(every: f64) -> Result<Duration> {
 
 /// `svkernel render`.
 fn render(a: RenderArgs) -> Result<()> {
-    use svkernel::jobs::render::{RenderOptions, Target, render_scene, tag_or, write_outputs};
-    use svkernel::render::estimator::Sampling;
+    use svkernel::jobs::render::{RenderOptions, render_scene, tag_or, write_outputs};
     use svkernel::render::scene::Scene;
     use svkernel::render::svbssrdf::Variant;
     let mut scene = Scene::find(&a.scene)?;
     if let Some(n) = a.resolution {
-        if !(1..=4096).contains(&n) {
-            bail!("invalid --resolution = {n}: must be in 1..=4096");
-        }
         scene.resolution = n;
     }
-    let targets = a
-        .methods
-        .iter()
-        .map(|m| Target::parse(m))
-        .collect::<svkernel::Result<Vec<_>>>()?;
-    if a.spp == Some(0) {
-        bail!("invalid --spp = 0: must be >= 1");
-    }
+    let targets = a.methods.clone();
     let opts = RenderOptions {
         targets,
         spp: a.spp,
-        sampling: Sampling::parse(&a.sampling)?,
+        sampling: a.sampling,
         variant: Variant {
             plain: a.plain,
             vertex_kernels: !a.point_albedos,
@@ -1202,6 +1181,7 @@ fn render(a: RenderArgs) -> Result<()> {
             Some(cache_dir(a.models.cache.as_deref())?)
         },
         out: a.out.clone(),
+        materials: Default::default(),
     };
     let passes = render_scene(&scene, &opts)?;
     let doc = write_outputs(&scene, &opts, &passes)?;
@@ -1277,7 +1257,7 @@ fn main() -> std::process::ExitCode {
             manual,
             model,
             json: _,
-        } => kernel_query(d, albedo, density, &vertices, manual, model.as_deref()),
+        } => kernel_query(d, albedo, density, vertices, manual, model.as_deref()),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

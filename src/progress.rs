@@ -17,7 +17,8 @@ pub struct Task {
     mode: Mode,
     label: String,
     unit: &'static str,
-    total: u64,
+    /// `None`: open-ended (a count, no fraction).
+    total: Option<u64>,
     start: Instant,
     /// Log mode: when the last line was printed (`None`: none yet) and the
     /// position.
@@ -35,18 +36,33 @@ impl Task {
     /// A step called `label` of `total` `unit`s; `enabled = false` shows
     /// nothing.
     pub fn new(enabled: bool, label: impl Into<String>, total: u64, unit: &'static str) -> Task {
-        let label = label.into();
+        Task::with_total(enabled, label.into(), Some(total), unit)
+    }
+
+    /// A step of unknown length that counts `unit`s (e.g. evaluations).
+    pub fn open(enabled: bool, label: impl Into<String>, unit: &'static str) -> Task {
+        Task::with_total(enabled, label.into(), None, unit)
+    }
+
+    fn with_total(enabled: bool, label: String, total: Option<u64>, unit: &'static str) -> Task {
         let mode = if !enabled {
             Mode::Off
         } else if std::io::stderr().is_terminal() {
             let bar = indicatif::ProgressBar::with_draw_target(
-                Some(total),
+                total,
                 indicatif::ProgressDrawTarget::stderr(),
             );
-            if let Ok(style) = indicatif::ProgressStyle::with_template(&format!(
-                "{{spinner}} {label} [{{elapsed_precise}}] {{wide_bar}} {{pos}}/{{len}} {unit} (ETA {{eta}})"
-            )) {
+            let template = match total {
+                Some(_) => format!(
+                    "{{spinner}} {label} [{{elapsed_precise}}] {{wide_bar}} {{pos}}/{{len}} {unit} (ETA {{eta}})"
+                ),
+                None => format!("{{spinner}} {label} [{{elapsed_precise}}] {{pos}} {unit}"),
+            };
+            if let Ok(style) = indicatif::ProgressStyle::with_template(&template) {
                 bar.set_style(style);
+            }
+            if total.is_none() {
+                bar.enable_steady_tick(Duration::from_millis(200));
             }
             Mode::Bar(bar)
         } else {
@@ -74,7 +90,7 @@ impl Task {
                     None => self.start.elapsed() >= QUIET_FOR,
                     Some(t) => t.elapsed() >= LOG_EVERY,
                 };
-                if due && done < self.total {
+                if due && self.total.is_none_or(|t| done < t) {
                     st.0 = Some(Instant::now());
                     self.line(done, "");
                 }
@@ -84,11 +100,17 @@ impl Task {
 
     /// Adds `n` to the amount done.
     pub fn inc(&self, n: u64) {
-        let done = {
-            let st = self.state.lock().unwrap_or_else(|e| e.into_inner());
-            st.1 + n
-        };
-        self.set(done);
+        match &self.mode {
+            Mode::Off => {}
+            Mode::Bar(bar) => bar.inc(n),
+            Mode::Log => {
+                let done = {
+                    let st = self.state.lock().unwrap_or_else(|e| e.into_inner());
+                    st.1 + n
+                };
+                self.set(done);
+            }
+        }
     }
 
     /// Ends the step: clears the bar; in log mode a closing line if the step
@@ -100,21 +122,24 @@ impl Task {
             Mode::Log => {
                 let st = self.state.lock().unwrap_or_else(|e| e.into_inner());
                 if st.0.is_some() {
-                    self.line(self.total, " done");
+                    self.line(self.total.unwrap_or(st.1), " done");
                 }
             }
         }
     }
 
     fn line(&self, done: u64, tail: &str) {
-        let pct = 100.0 * done as f64 / self.total.max(1) as f64;
-        eprintln!(
-            "{}: {done}/{} {} ({pct:.0} %) after {:.0} s{tail}",
-            self.label,
-            self.total,
-            self.unit,
-            self.start.elapsed().as_secs_f64()
-        );
+        let t = self.start.elapsed().as_secs_f64();
+        match self.total {
+            Some(total) => {
+                let pct = 100.0 * done as f64 / total.max(1) as f64;
+                eprintln!(
+                    "{}: {done}/{total} {} ({pct:.0} %) after {t:.0} s{tail}",
+                    self.label, self.unit
+                );
+            }
+            None => eprintln!("{}: {done} {} after {t:.0} s{tail}", self.label, self.unit),
+        }
     }
 }
 

@@ -34,6 +34,7 @@ fn options(targets: Vec<Target>, spp: u32, paths: u64, out: &str) -> RenderOptio
         targets,
         spp: Some(spp),
         reference_paths: Some(paths),
+        cache: Some(dir.join("cache")),
         ..RenderOptions::new(dir, svkernel::jobs::shipped::Models::builtin().unwrap())
     }
 }

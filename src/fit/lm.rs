@@ -83,6 +83,30 @@ impl Default for FitOptions {
     }
 }
 
+/// Levenberg–Marquardt's termination reason in words.
+fn describe(t: &levenberg_marquardt::TerminationReason) -> String {
+    use levenberg_marquardt::TerminationReason as T;
+    match t {
+        T::Converged {
+            ftol: true,
+            xtol: true,
+        } => "converged (relative χ² change and step below tolerance)".into(),
+        T::Converged { ftol: true, .. } => "converged (relative χ² change below tolerance)".into(),
+        T::Converged { .. } => "converged (relative step below tolerance)".into(),
+        T::ResidualsZero => "converged (residuals zero)".into(),
+        T::Orthogonal => "converged (residuals orthogonal to the Jacobian)".into(),
+        T::LostPatience => "stopped: evaluation budget spent".into(),
+        T::NoImprovementPossible(what) => {
+            format!("stopped: no further improvement possible ({what})")
+        }
+        T::Numerical(what) => format!("stopped: numerical problem ({what})"),
+        T::User(what) => format!("stopped: {what}"),
+        T::NoParameters => "nothing to fit: no parameters".into(),
+        T::NoResiduals => "nothing to fit: no residuals".into(),
+        T::WrongDimensions(what) => format!("wrong dimensions ({what})"),
+    }
+}
+
 /// Solves `problem` from its current parameters.
 pub fn solve<P>(what: &str, problem: P, opts: &FitOptions) -> Result<(P, FitReport), FitError>
 where
@@ -117,7 +141,7 @@ where
         || matches!(report.termination, levenberg_marquardt::TerminationReason::NoImprovementPossible(_));
     let rep = FitReport {
         what: what.to_string(),
-        termination: format!("{:?}", report.termination),
+        termination: describe(&report.termination),
         success,
         evaluations: report.number_of_evaluations,
         chi2,

@@ -122,6 +122,8 @@ pub struct MetaFit<'a> {
     dists: Vec<f64>,
     rows: Vec<usize>,
     coeffs: DVector<f64>,
+    /// Counts the evaluations (one per parameter update), if set.
+    progress: Option<&'a crate::progress::Task>,
 }
 
 impl<'a> MetaFit<'a> {
@@ -148,6 +150,7 @@ impl<'a> MetaFit<'a> {
             dists: cells.iter().map(|c| c.d).collect(),
             rows,
             coeffs: coeffs.clone(),
+            progress: None,
         };
         f.set_params(&coeffs);
         f
@@ -191,6 +194,9 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for MetaFit<'_> {
     type ParameterStorage = Owned<f64, Dyn>;
 
     fn set_params(&mut self, x: &DVector<f64>) {
+        if let Some(t) = self.progress {
+            t.inc(1);
+        }
         self.coeffs.copy_from(x);
         let k = self.template.k;
         let n = self.template.n_coeffs();
@@ -370,6 +376,17 @@ pub fn fit_meta(
     deg: (usize, usize),
     what: &str,
 ) -> Result<(MetaModel, FitReport, Vec<CellFit>), FitError> {
+    fit_meta_with(cells, k, deg, what, None)
+}
+
+/// [`fit_meta`], counting the joint fit's evaluations on `progress`.
+pub fn fit_meta_with(
+    cells: &[Cell],
+    k: usize,
+    deg: (usize, usize),
+    what: &str,
+    progress: Option<&crate::progress::Task>,
+) -> Result<(MetaModel, FitReport, Vec<CellFit>), FitError> {
     let fits = per_cell_fits(cells, k);
     let init = initial_model(cells, &fits, k, deg)?;
     // The data resolve the kernels far better than three isotropic Gaussians
@@ -383,7 +400,9 @@ pub fn fit_meta(
         tol: META_TOL,
         allow_nonconvergence: true,
     };
-    let (p, rep) = solve(what, MetaFit::new(cells, init), &opts)?;
+    let mut problem = MetaFit::new(cells, init);
+    problem.progress = progress;
+    let (p, rep) = solve(what, problem, &opts)?;
     Ok((p.model(), rep, fits))
 }
 
@@ -465,13 +484,17 @@ pub fn fit_metamodel(
     degree: (usize, usize),
     progress: bool,
 ) -> crate::Result<(MetaModelFile, MetaModelFit)> {
-    let task = crate::progress::Task::new(progress, "fitting the meta-model", 2, "vertex classes");
+    let task = crate::progress::Task::open(
+        progress,
+        "fitting the meta-model (all and last vertices)",
+        "Levenberg–Marquardt evaluations",
+    );
     // The two classes are independent fits: run them side by side (the QR
     // inside LM is single-threaded).
     let fit_class = |class: VertexClass| {
         let cs = cells(doc, class);
         let what = format!("meta-model ({class:?} vertices)");
-        fit_meta(&cs, k, degree, &what).map(|r| (class, cs, r))
+        fit_meta_with(&cs, k, degree, &what, Some(&task)).map(|r| (class, cs, r))
     };
     let (a, l) = rayon::join(
         || fit_class(VertexClass::All),
@@ -483,7 +506,6 @@ pub fn fit_metamodel(
     let mut aggregation = Vec::new();
     for r in [a, l] {
         let (class, cs, (m, rep, fits)) = r?;
-        task.inc(1);
         use rayon::prelude::*;
         aggregation.extend(
             cs.par_iter()

@@ -19,7 +19,7 @@ pub const DEFAULT_MAX_EVENTS: u32 = 1_000_000;
 /// Which implementation of the walk runs. Both consume the same streams; they
 /// differ only by rounding (f64 vs f32), so their tallies agree statistically,
 /// not bitwise, and documents of different engines do not merge.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum Engine {
     /// Plain f64 walk, one path at a time ([`super::walk`]).

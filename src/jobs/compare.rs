@@ -111,11 +111,7 @@ pub fn error_vs_time(
             );
         }
     }
-    let methods: Vec<Target> = scene
-        .methods
-        .iter()
-        .map(|m| Method::parse(m).map(Target::Model))
-        .collect::<Result<_>>()?;
+    let methods: Vec<Target> = scene.methods.iter().map(|&m| Target::Model(m)).collect();
     // (No model methods: nothing to add; empty targets would mean "the
     // scene's methods and the reference".)
     for &spp in spps.iter().filter(|_| !methods.is_empty()) {
@@ -345,7 +341,7 @@ fn range_effect(
     opts: &RenderOptions,
     extension: Option<&super::extend::Extension>,
 ) -> Result<Option<Effect>> {
-    if !scene.methods.iter().any(|m| m == "learned") {
+    if !scene.methods.contains(&Method::Learned) {
         return Ok(None);
     }
     let [lo, hi] = plan.albedo_range;

@@ -61,10 +61,44 @@ pub fn fit_kernels(
         wall_s: start.elapsed().as_secs_f64(),
     };
     crate::jobs::store::write_json_atomic(&dir.join("report.json"), &report)?;
+    crate::jobs::store::write_atomic(
+        &dir.join("aggregation.md"),
+        aggregation_table(&report.aggregation).as_bytes(),
+    )?;
     crate::progress::step(progress, "drawing the kernel plots", || {
         kernel_plots(&doc, &file, &report.aggregation, dir)
     })?;
     Ok(report)
+}
+
+/// Per vertex class: cells, the mean and worst aggregation error of the
+/// meta-model and of the manual kernel, and the cells where the meta-model
+/// is the better of the two (α_t errors in albedo units).
+pub fn aggregation_summary(rows: &[AggregationRow]) -> String {
+    let mut s = String::from(
+        "vertices  cells  meta-model mean / worst   manual mean / worst   meta-model better\n",
+    );
+    for class in [VertexClass::All, VertexClass::Last] {
+        let r: Vec<&AggregationRow> = rows.iter().filter(|r| r.class == class).collect();
+        if r.is_empty() {
+            continue;
+        }
+        let n = r.len() as f64;
+        let mean = |f: &dyn Fn(&AggregationRow) -> f64| r.iter().map(|x| f(x)).sum::<f64>() / n;
+        let worst = |f: &dyn Fn(&AggregationRow) -> f64| r.iter().map(|x| f(x)).fold(0.0, f64::max);
+        let better = r.iter().filter(|x| x.meta < x.manual).count();
+        s += &format!(
+            "{:<9} {:>5}  {:>10.4} / {:<10.4}   {:>7.4} / {:<8.4}   {better} of {}\n",
+            format!("{class:?}").to_lowercase(),
+            r.len(),
+            mean(&|x| x.meta),
+            worst(&|x| x.meta),
+            mean(&|x| x.manual),
+            worst(&|x| x.manual),
+            r.len()
+        );
+    }
+    s
 }
 
 /// The aggregation-error table as Markdown (α_t errors in albedo units).

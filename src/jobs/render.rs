@@ -29,7 +29,7 @@ use crate::render::analysis::analyse;
 use crate::render::estimator::{self, Image, Sampling, Settings, View};
 use crate::render::reference::{REFERENCE_FORMAT, REFERENCE_VERSION, Reference, ReferenceTally};
 use crate::render::scene::{LightKind, Scene};
-use crate::render::svbssrdf::{BasisTable, Density, Method, SvBssrdf, Variant};
+use crate::render::svbssrdf::{BasisTable, Density, Material, Method, SvBssrdf, Variant};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -56,6 +56,25 @@ impl Target {
         } else {
             Method::parse(s).map(Target::Model)
         }
+    }
+}
+
+/// `--method`: the reference or one of the methods.
+impl clap::ValueEnum for Target {
+    fn value_variants<'a>() -> &'a [Self] {
+        &[
+            Target::Reference,
+            Target::Model(Method::Point),
+            Target::Model(Method::Factorized),
+            Target::Model(Method::Line),
+            Target::Model(Method::Ellipse),
+            Target::Model(Method::Manual),
+            Target::Model(Method::Learned),
+        ]
+    }
+
+    fn to_possible_value(&self) -> Option<clap::builder::PossibleValue> {
+        Some(clap::builder::PossibleValue::new(self.name()))
     }
 }
 
@@ -86,7 +105,15 @@ pub struct RenderOptions {
     /// Where meta-model extensions for albedos outside the trained range
     /// are cached ([`super::extend`]); `None`: clamp there instead.
     pub cache: Option<PathBuf>,
+    /// Materials already prepared (maps on one grid, pyramids, row sums),
+    /// shared by every method of a pass and by the renders of every clone
+    /// of these options (compare's budgets), keyed by scene content, pass
+    /// and analysis.
+    pub materials: Materials,
 }
+
+/// Prepared materials by (scene hash, pass, analysis on).
+pub type Materials = Arc<std::sync::Mutex<std::collections::HashMap<String, Arc<Material>>>>;
 
 impl RenderOptions {
     /// The defaults into `out` with `models`: the scene's targets, samples
@@ -109,6 +136,7 @@ impl RenderOptions {
             reference_tallies: Vec::new(),
             analysis: true,
             cache: crate::jobs::shipped::cache_dir(None).ok(),
+            materials: Materials::default(),
         }
     }
 }
@@ -322,11 +350,7 @@ fn passes(scene: &Scene) -> Vec<(String, Option<f64>)> {
 /// when `opts.run.progress` is set.
 pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
     let targets = if opts.targets.is_empty() {
-        let mut t: Vec<Target> = scene
-            .methods
-            .iter()
-            .map(|m| Target::parse(m))
-            .collect::<Result<_>>()?;
+        let mut t: Vec<Target> = scene.methods.iter().map(|&m| Target::Model(m)).collect();
         t.insert(0, Target::Reference);
         t
     } else {
@@ -545,13 +569,30 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                     } else {
                         method
                     };
-                    let sv = SvBssrdf::new(
+                    let key = format!("{hash}/{tag}/{}", opts.analysis);
+                    let cached = opts
+                        .materials
+                        .lock()
+                        .unwrap_or_else(|e| e.into_inner())
+                        .get(&key)
+                        .cloned();
+                    let material = match cached {
+                        Some(m) => m,
+                        None => {
+                            let m = Arc::new(Material::new(albedo.clone(), density)?);
+                            opts.materials
+                                .lock()
+                                .unwrap_or_else(|e| e.into_inner())
+                                .insert(key, m.clone());
+                            m
+                        }
+                    };
+                    let sv = SvBssrdf::on(
                         evaluated,
                         opts.variant,
                         basis.clone().expect("loaded for model targets"),
                         meta.clone(),
-                        albedo.clone(),
-                        density,
+                        material,
                     )?;
                     let sv = match (&extension_model, method) {
                         (Some(ext), Method::Learned) => sv.with_extension(ext.clone()),

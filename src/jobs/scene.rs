@@ -271,16 +271,23 @@ impl Scene {
                 ));
             }
         };
-        let methods = raw
-            .methods
-            .clone()
-            .unwrap_or_else(|| method_names().iter().map(|s| s.to_string()).collect());
-        if let Some(m) = methods.iter().find(|m| Method::parse(m).is_err()) {
-            return Err(bad(
-                "methods",
-                format!("unknown method '{m}' (known: {:?})", method_names()),
-            ));
-        }
+        let methods = match &raw.methods {
+            None => Method::ALL.to_vec(),
+            Some(names) => names
+                .iter()
+                .map(|m| {
+                    Method::parse(m).map_err(|_| {
+                        bad(
+                            "methods",
+                            format!(
+                                "unknown method '{m}' (known: {})",
+                                method_names().join(", ")
+                            ),
+                        )
+                    })
+                })
+                .collect::<Result<_>>()?,
+        };
         if raw.samples == 0 {
             return Err(bad("samples", "must be >= 1".into()));
         }

@@ -63,7 +63,7 @@ use wide::f64x4;
 pub const IS_ALBEDO_FLOOR: f64 = 0.05;
 
 /// How x_i is sampled (module docs).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum Sampling {
     Uniform,

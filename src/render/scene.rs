@@ -43,7 +43,7 @@ pub struct Scene {
     pub resolution: usize,
     pub half_width: f64,
     pub observable: Observable,
-    pub methods: Vec<String>,
+    pub methods: Vec<crate::render::svbssrdf::Method>,
     pub samples: u32,
     pub reference_paths: u64,
     /// Render the scene once per constant density in this list (the

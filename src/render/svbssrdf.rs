@@ -59,13 +59,13 @@ use crate::metamodel::kernel::{Component, Gmm};
 use crate::metamodel::meta::MetaModelFile;
 use crate::render::pyramid::GaussianPyramid;
 use std::f64::consts::PI;
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
 /// Smallest r (MFP) at which S is evaluated.
 pub const R_MIN: f64 = 1e-6;
 
 /// The methods of docs/design.md §4's table (the reference is rendered separately).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, clap::ValueEnum)]
 pub enum Method {
     Point,
     Factorized,
@@ -325,8 +325,117 @@ pub struct Scratch {
     last: Gmm,
 }
 
-/// The material (albedo channels and density) and one method, ready to
-/// evaluate S(x_i, x_e) per channel.
+/// The material of one render pass: albedo channels and density on one
+/// common texel grid, with the aggregation structures the methods read
+/// (Gaussian pyramids, row sums). Each structure is built the first time a
+/// method needs it and then shared by every method and every render on
+/// this material.
+#[derive(Debug)]
+pub struct Material {
+    albedo: Vec<TexelMap>,
+    density: Density,
+    /// Pyramids of the density-scaled (`[0]`) and the plain (`[1]`) variant.
+    pyramids: [OnceLock<Arc<Pyramids>>; 2],
+    rows: OnceLock<Arc<Rows>>,
+}
+
+impl Material {
+    /// The material of `albedo` (one map per channel) and `density`; every
+    /// map is resampled onto one common grid (exact for nearest-neighbour
+    /// maps, see `common_grid`), as products ρα need.
+    pub fn new(albedo: Vec<TexelMap>, density: Density) -> Result<Self> {
+        let mut all: Vec<&TexelMap> = albedo.iter().collect();
+        if let Density::Map(rho) = &density {
+            all.push(rho);
+        }
+        let mut maps = common_grid(&all)?;
+        let density = match density {
+            Density::Map(_) => Density::Map(maps.pop().expect("pushed")),
+            c => c,
+        };
+        Ok(Material {
+            albedo: maps,
+            density,
+            pyramids: Default::default(),
+            rows: OnceLock::new(),
+        })
+    }
+
+    /// The albedo maps (one per channel, on the common grid).
+    pub fn albedo(&self) -> &[TexelMap] {
+        &self.albedo
+    }
+
+    /// The density.
+    pub fn density(&self) -> &Density {
+        &self.density
+    }
+
+    /// The pyramids of the kernel methods under `variant` (built once).
+    fn pyramids(&self, variant: &Variant) -> Result<Arc<Pyramids>> {
+        let varying = matches!(self.density, Density::Map(_));
+        // The plain variant's pyramids differ only with a density map.
+        let slot = &self.pyramids[usize::from(varying && variant.plain)];
+        if let Some(p) = slot.get() {
+            return Ok(p.clone());
+        }
+        let alpha = if !varying || variant.plain {
+            self.albedo
+                .iter()
+                .map(GaussianPyramid::new)
+                .collect::<Result<_>>()?
+        } else {
+            Vec::new()
+        };
+        let (rho_alpha, rho) = match &self.density {
+            Density::Map(rho) => (
+                density_weighted(&self.albedo, &self.density)
+                    .iter()
+                    .map(GaussianPyramid::new)
+                    .collect::<Result<_>>()?,
+                Some(GaussianPyramid::new(rho)?),
+            ),
+            Density::Constant(_) => (Vec::new(), None),
+        };
+        let built = Arc::new(Pyramids {
+            alpha,
+            rho_alpha,
+            rho,
+        });
+        Ok(slot.get_or_init(|| built).clone())
+    }
+
+    /// The row sums of the ellipse method (built once).
+    fn rows(&self) -> Arc<Rows> {
+        self.rows
+            .get_or_init(|| {
+                Arc::new(Rows {
+                    rho_alpha: density_weighted(&self.albedo, &self.density)
+                        .into_iter()
+                        .map(RowPrefix::new)
+                        .collect(),
+                    rho: match &self.density {
+                        Density::Map(rho) => Some(RowPrefix::new(rho.clone())),
+                        Density::Constant(_) => None,
+                    },
+                })
+            })
+            .clone()
+    }
+}
+
+/// What a method reads besides point values.
+#[derive(Debug)]
+enum Aggregates {
+    /// Point values only (point, factorized, line).
+    None,
+    /// Gaussian pyramids (manual, learned).
+    Kernel(Arc<Pyramids>),
+    /// Row sums (ellipse).
+    Rows(Arc<Rows>),
+}
+
+/// A material and one method, ready to evaluate S(x_i, x_e) per channel.
 #[derive(Debug)]
 pub struct SvBssrdf {
     pub method: Method,
@@ -335,15 +444,14 @@ pub struct SvBssrdf {
     meta: Option<Arc<MetaModelFile>>,
     /// A meta-model for albedos outside `meta`'s range ([`crate::jobs::extend`]).
     extension: Option<Arc<MetaModelFile>>,
-    albedo: Vec<TexelMap>,
-    density: Density,
-    pyramids: Option<Pyramids>,
-    rows: Option<Rows>,
+    material: Arc<Material>,
+    aggregates: Aggregates,
 }
 
 impl SvBssrdf {
-    /// Prepares `method` on the material; builds only the pyramids the
-    /// method and variant need. `meta` is required by `learned`.
+    /// Prepares `method` on the maps `albedo` and `density` (a material of
+    /// its own: [`SvBssrdf::on`] shares one between methods). `meta` is
+    /// required by `learned`.
     pub fn new(
         method: Method,
         variant: Variant,
@@ -352,6 +460,20 @@ impl SvBssrdf {
         albedo: Vec<TexelMap>,
         density: Density,
     ) -> Result<Self> {
+        let material = Arc::new(Material::new(albedo, density)?);
+        SvBssrdf::on(method, variant, basis, meta, material)
+    }
+
+    /// Prepares `method` on a shared `material`, building (once per
+    /// material) only the aggregates the method and variant read. `meta` is
+    /// required by `learned`.
+    pub fn on(
+        method: Method,
+        variant: Variant,
+        basis: Arc<BasisTable>,
+        meta: Option<Arc<MetaModelFile>>,
+        material: Arc<Material>,
+    ) -> Result<Self> {
         if method == Method::Learned && meta.is_none() {
             return Err(Error::param(
                 "--model",
@@ -359,68 +481,19 @@ impl SvBssrdf {
                 "a meta-model file for method learned",
             ));
         }
-        // Products ρα need one grid: resample every map onto a common one
-        // (exact for nearest-neighbour maps, see `common_grid`).
-        let (albedo, density) = {
-            let mut all: Vec<&TexelMap> = albedo.iter().collect();
-            if let Density::Map(rho) = &density {
-                all.push(rho);
-            }
-            let mut maps = common_grid(&all)?;
-            let density = match density {
-                Density::Map(_) => Density::Map(maps.pop().expect("pushed")),
-                c => c,
-            };
-            (maps, density)
+        let aggregates = match method {
+            m if m.uses_kernel() => Aggregates::Kernel(material.pyramids(&variant)?),
+            Method::Ellipse => Aggregates::Rows(material.rows()),
+            _ => Aggregates::None,
         };
-        let pyramids = if method.uses_kernel() {
-            let varying = matches!(density, Density::Map(_));
-            let alpha = if !varying || variant.plain {
-                albedo
-                    .iter()
-                    .map(GaussianPyramid::new)
-                    .collect::<Result<_>>()?
-            } else {
-                Vec::new()
-            };
-            let (rho_alpha, rho) = match &density {
-                Density::Map(rho) => (
-                    density_weighted(&albedo, &density)
-                        .iter()
-                        .map(GaussianPyramid::new)
-                        .collect::<Result<_>>()?,
-                    Some(GaussianPyramid::new(rho)?),
-                ),
-                Density::Constant(_) => (Vec::new(), None),
-            };
-            Some(Pyramids {
-                alpha,
-                rho_alpha,
-                rho,
-            })
-        } else {
-            None
-        };
-        let rows = (method == Method::Ellipse).then(|| Rows {
-            rho_alpha: density_weighted(&albedo, &density)
-                .into_iter()
-                .map(RowPrefix::new)
-                .collect(),
-            rho: match &density {
-                Density::Map(rho) => Some(RowPrefix::new(rho.clone())),
-                Density::Constant(_) => None,
-            },
-        });
         Ok(SvBssrdf {
             method,
             variant,
             basis,
             meta,
             extension: None,
-            albedo,
-            density,
-            pyramids,
-            rows,
+            material,
+            aggregates,
         })
     }
 
@@ -446,19 +519,19 @@ impl SvBssrdf {
 
     /// Number of channels.
     pub fn channels(&self) -> usize {
-        self.albedo.len()
+        self.material.albedo.len()
     }
 
     /// The albedo of channel `c` at a point.
     #[inline]
     pub fn albedo_at(&self, c: usize, x: f64, y: f64) -> f64 {
-        self.albedo[c].at(x, y)
+        self.material.albedo[c].at(x, y)
     }
 
     /// The density at a point.
     #[inline]
     pub fn density_at(&self, x: f64, y: f64) -> f64 {
-        self.density.at(x, y)
+        self.material.density.at(x, y)
     }
 
     /// The basis table.
@@ -563,16 +636,15 @@ impl SvBssrdf {
     /// (α_t, ρ̄) of channel `c` under `kernel` placed in `frame`.
     #[inline]
     fn aggregate(&self, c: usize, frame: &Frame, kernel: &Gmm) -> (f64, f64) {
-        let p = self
-            .pyramids
-            .as_ref()
-            .expect("kernel methods build their pyramids");
+        let Aggregates::Kernel(p) = &self.aggregates else {
+            unreachable!("kernel methods are built with their pyramids")
+        };
         let mut wsum = 0.0;
         let (mut num, mut den, mut plain) = (0.0, 0.0, 0.0);
         for comp in &kernel.components {
             let mu = frame.place(comp);
             wsum += comp.weight;
-            match (&self.density, &p.rho) {
+            match (&self.material.density, &p.rho) {
                 (Density::Map(_), Some(rho)) => {
                     let other = if self.variant.plain {
                         &p.alpha[c]
@@ -590,7 +662,7 @@ impl SvBssrdf {
                 _ => plain += comp.weight * p.alpha[c].integrate(mu, comp.sigma),
             }
         }
-        match &self.density {
+        match &self.material.density {
             Density::Constant(r) => ((plain / wsum).clamp(0.0, 1.0), *r),
             Density::Map(_) => {
                 let alpha_t = if self.variant.plain {
@@ -605,7 +677,7 @@ impl SvBssrdf {
 
     /// Density-weighted mean albedo and mean density along the segment.
     fn line_average(&self, c: usize, xi: [f64; 2], xe: [f64; 2], d: f64) -> (f64, f64) {
-        let tau = self.albedo[c].texel;
+        let tau = self.material.albedo[c].texel;
         let n = ((2.0 * d / tau).ceil() as usize).max(1);
         let (mut ra, mut r) = (0.0, 0.0);
         for k in 0..n {
@@ -631,7 +703,9 @@ impl SvBssrdf {
         d: f64,
         rho0: f64,
     ) -> (f64, f64) {
-        let rows = self.rows.as_ref().expect("ellipse builds its row sums");
+        let Aggregates::Rows(rows) = &self.aggregates else {
+            unreachable!("the ellipse method is built with its row sums")
+        };
         let a = 0.5 * d + 1.0 / rho0;
         let b = (a * a - 0.25 * d * d).sqrt();
         let centre = [0.5 * (xi[0] + xe[0]), 0.5 * (xi[1] + xe[1])];
@@ -668,7 +742,7 @@ impl SvBssrdf {
             let rho = self.density_at(centre[0], centre[1]);
             return (self.albedo_at(c, centre[0], centre[1]), rho);
         }
-        match (&self.density, r) {
+        match (&self.material.density, r) {
             (Density::Constant(rho), _) => (num / den, *rho),
             _ => (num / den, den / area),
         }
