@@ -63,3 +63,78 @@ fn canonical_scenes_have_their_structure() {
     assert!((rho.at(-10.0, 0.0) - 0.5).abs() < 1e-12 && (rho.at(10.0, 0.0) - 4.0).abs() < 1e-12);
     assert!((rho.at(0.0, 0.0) - 2.25).abs() < 0.05);
 }
+
+/// A fresh temporary directory for one test's scene and texture files.
+fn tmpdir(name: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("svk-scenes-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// Writes `text` as `dir/name` and loads it as a scene.
+fn load(dir: &Path, name: &str, text: &str) -> svkernel::Result<Scene> {
+    let p = dir.join(name);
+    std::fs::write(&p, text).unwrap();
+    Scene::load(&p)
+}
+
+/// Every texel of every channel, bit for bit.
+fn bits(s: &Scene) -> Vec<Vec<u64>> {
+    let mut v: Vec<Vec<u64>> = s
+        .albedo
+        .iter()
+        .map(|m| m.values.iter().map(|x| x.to_bits()).collect())
+        .collect();
+    v.extend(
+        s.density
+            .iter()
+            .map(|m| m.values.iter().map(|x| x.to_bits()).collect()),
+    );
+    v
+}
+
+/// A float32 `.npy` texture (as numpy writes by default for `float32`
+/// images) loads to the same texels as the float64 one, grey and RGB, for
+/// albedo and density; other dtypes are refused naming the file and the
+/// accepted dtypes.
+#[test]
+fn float32_npy_textures_load_like_float64() {
+    use ndarray_npy::write_npy;
+    let d = tmpdir("npy32");
+    // Values exact in f32 (k/64), so widening is exact.
+    let grey = ndarray::Array2::from_shape_fn((3, 5), |(i, j)| (1 + i * 5 + j) as f64 / 64.0);
+    let rgb = ndarray::Array3::from_shape_fn((2, 4, 3), |(i, j, c)| {
+        (1 + (i * 4 + j) * 3 + c) as f64 / 64.0
+    });
+    write_npy(d.join("g64.npy"), &grey).unwrap();
+    write_npy(d.join("g32.npy"), &grey.mapv(|v| v as f32)).unwrap();
+    write_npy(d.join("c64.npy"), &rgb).unwrap();
+    write_npy(d.join("c32.npy"), &rgb.mapv(|v| v as f32)).unwrap();
+    for (a, b) in [("g64", "g32"), ("c64", "c32")] {
+        let scene = |f: &str| {
+            load(
+                &d,
+                &format!("{f}.toml"),
+                &format!(
+                    "texel = 0.5\nalbedo = {{ file = \"{f}.npy\" }}\n\
+                     density = {{ file = \"g{}.npy\" }}\n",
+                    &f[1..]
+                ),
+            )
+            .unwrap_or_else(|e| panic!("{e}"))
+        };
+        let (s64, s32) = (scene(a), scene(b));
+        assert_eq!(s64.albedo.len(), if a == "g64" { 1 } else { 3 });
+        assert_eq!(bits(&s64), bits(&s32), "{a} vs {b}");
+    }
+    // An integer array: refused, naming the texture and the dtypes read.
+    write_npy(d.join("int.npy"), &ndarray::Array2::<i64>::zeros((2, 2))).unwrap();
+    let e = load(&d, "int.toml", "albedo = { file = \"int.npy\" }\n")
+        .unwrap_err()
+        .to_string();
+    for n in ["int.toml", "albedo.file", "int.npy", "float64", "float32"] {
+        assert!(e.contains(n), "'{n}' not in: {e}");
+    }
+    std::fs::remove_dir_all(&d).unwrap();
+}

@@ -34,12 +34,13 @@
 //!   seed = n }` (thin lines and dots at three scales); for RGB, `values` is a
 //!   list of three-element lists (one per value);
 //! * `{ channels = [map, map, map] }` — R, G, B from three grey maps;
-//! * `{ file = "path.npy" }` — an `(ny, nx)` or `(ny, nx, 3)` float64 array
-//!   (row 0 is +y, column 0 is −x), relative to the scene file;
+//! * `{ file = "path.npy" }` — an `(ny, nx)` or `(ny, nx, 3)` float64 or
+//!   float32 array (row 0 is +y, column 0 is −x), relative to the scene file;
 //!   `{ file = "path.exr" }` — the first layer's R, G, B (or Y, or its only
 //!   channel), linear; `{ file = "path.png", transfer = "srgb" | "linear" }`
-//!   — 8- or 16-bit grey or RGB (alpha ignored), values v/(2^bits − 1), the
-//!   transfer stated explicitly (`srgb` decodes IEC 61966-2-1 to linear).
+//!   — 8- or 16-bit grey or RGB, values v/(2^bits − 1), the transfer stated
+//!   explicitly in any letter case (`srgb` decodes IEC 61966-2-1 to linear);
+//!   a PNG with an alpha channel is refused (flatten it first).
 //!   Image row 0 is +y, column 0 is −x, one pixel per texel.
 //!
 //! A key that the map's kind does not read (e.g. `width` on a checker) is
@@ -791,21 +792,40 @@ fn load_png(file: &Path, texel: f64, srgb: bool) -> Result<Vec<TexelMap>> {
         .collect()
 }
 
-/// Loads an `(ny, nx)` or `(ny, nx, 3)` float64 `.npy` as 1 or 3 channels.
+/// Loads an `(ny, nx)` or `(ny, nx, 3)` float64 or float32 `.npy` as 1 or 3
+/// channels (float32 values widened exactly).
 fn load_npy(file: &Path, texel: f64) -> Result<Vec<TexelMap>> {
     use ndarray::ArrayD;
-    use ndarray_npy::ReadNpyExt;
-    let f = std::fs::File::open(file).map_err(|e| Error::io(file, e))?;
-    let a = ArrayD::<f64>::read_npy(f).map_err(|e| Error::format(file, "(npy)", e))?;
+    use ndarray_npy::{ReadNpyError, ReadNpyExt};
+    let open = || std::fs::File::open(file).map_err(|e| Error::io(file, e));
+    let bad = |e: ReadNpyError| Error::format(file, "(npy)", e);
+    // The dtype is checked on the header, before any data is read: a float32
+    // file costs one extra header parse.
+    let a = match ArrayD::<f64>::read_npy(open()?) {
+        Ok(a) => a,
+        Err(ReadNpyError::WrongDescriptor(_)) => match ArrayD::<f32>::read_npy(open()?) {
+            Ok(a) => a.mapv(f64::from),
+            Err(ReadNpyError::WrongDescriptor(d)) => {
+                return Err(Error::format(
+                    file,
+                    "(npy)",
+                    format!("dtype {d}: svkernel reads float64 ('<f8') or float32 ('<f4') arrays"),
+                ));
+            }
+            Err(e) => return Err(bad(e)),
+        },
+        Err(e) => return Err(bad(e)),
+    };
     let shape = a.shape().to_vec();
     let (ny, nx, nc) = match shape[..] {
         [ny, nx] => (ny, nx, 1),
         [ny, nx, 3] => (ny, nx, 3),
         _ => {
+            let dims: Vec<String> = shape.iter().map(|n| n.to_string()).collect();
             return Err(Error::format(
                 file,
                 "(shape)",
-                format!("{shape:?}: expected (ny, nx) or (ny, nx, 3)"),
+                format!("({}): expected (ny, nx) or (ny, nx, 3)", dims.join(", ")),
             ));
         }
     };
