@@ -138,3 +138,50 @@ fn float32_npy_textures_load_like_float64() {
     }
     std::fs::remove_dir_all(&d).unwrap();
 }
+
+/// `albedo = 0.8` is `{ constant = 0.8 }`, `albedo = [r, g, b]` is
+/// `{ rgb = [r, g, b] }`, likewise for `density` and inside `channels`;
+/// a wrong shorthand is an error naming the line, not a serde type name.
+#[test]
+fn scalar_and_list_shorthands_for_maps() {
+    let d = tmpdir("shorthand");
+    let same = |short: &str, long: &str| {
+        let a = load(&d, "short.toml", short).unwrap_or_else(|e| panic!("{short}: {e}"));
+        let b = load(&d, "long.toml", long).unwrap_or_else(|e| panic!("{long}: {e}"));
+        assert_eq!(bits(&a), bits(&b), "{short} vs {long}");
+        a
+    };
+    let s = same("albedo = 0.8\n", "albedo = { constant = 0.8 }\n");
+    assert!(s.albedo_is_constant() && s.albedo[0].values == [0.8]);
+    same("albedo = 1\n", "albedo = { constant = 1.0 }\n");
+    let s = same(
+        "albedo = 0.8\ndensity = 2.0\n",
+        "albedo = { constant = 0.8 }\ndensity = { constant = 2.0 }\n",
+    );
+    assert_eq!(s.density.as_ref().unwrap().values, [2.0]);
+    let s = same(
+        "albedo = [0.8, 0.5, 0.3]\n",
+        "albedo = { rgb = [0.8, 0.5, 0.3] }\n",
+    );
+    assert_eq!(s.albedo.len(), 3);
+    same(
+        "albedo = { channels = [0.8, { constant = 0.5 }, 0.3] }\n",
+        "albedo = { rgb = [0.8, 0.5, 0.3] }\n",
+    );
+    // Domain checks still apply to the shorthand.
+    let e = load(&d, "over.toml", "albedo = 1.5\n").unwrap_err().to_string();
+    assert!(e.contains("over.toml") && e.contains("albedo"), "{e}");
+    for (text, want) in [
+        ("albedo = [0.8, 0.5]\n", "three numbers"),
+        ("albedo = [0.8, 0.5, 0.3, 0.1]\n", "three numbers"),
+        ("albedo = \"red\"\n", "a number"),
+    ] {
+        let e = load(&d, "bad.toml", text).unwrap_err().to_string();
+        assert!(
+            e.contains("bad.toml") && e.contains("line 1") && e.contains(want),
+            "{text}: {e}"
+        );
+        assert!(!e.contains("RawMap") && !e.contains("struct"), "{text}: {e}");
+    }
+    std::fs::remove_dir_all(&d).unwrap();
+}

@@ -23,7 +23,9 @@
 //! | `density_sweep` | list of floats | none | 1 | render once per constant density (instead of `density`) |
 //!
 //! A **map** is one of (a TOML table):
-//! * `{ constant = 0.8 }`, or `{ rgb = [0.8, 0.5, 0.3] }`;
+//! * `{ constant = 0.8 }`, or `{ rgb = [0.8, 0.5, 0.3] }`; the shorthands
+//!   `albedo = 0.8` and `albedo = [0.8, 0.5, 0.3]` mean the same (a number:
+//!   a constant; a list of three numbers: `rgb`), for any map;
 //! * `{ pattern = "stripes", values = [a, b], width = w, angle = deg }`
 //!   (stripes of width w MFP across the direction `angle` (degrees from +x):
 //!   stripe k = ⌊u/w⌋ with u = x cos θ + y sin θ holds a for even k, b for odd),
@@ -155,9 +157,11 @@ impl Default for RawImage {
     }
 }
 
-/// A map as written in the scene (see the module docs).
-#[derive(Clone, Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
+/// A map as written in the scene (see the module docs): a table, or the
+/// shorthand of a number (a constant) or of three numbers (`rgb`); see the
+/// `Deserialize` impl below.
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields, remote = "Self")]
 struct RawMap {
     constant: Option<f64>,
     rgb: Option<[f64; 3]>,
@@ -174,6 +178,60 @@ struct RawMap {
     transfer: Option<String>,
     channels: Option<Vec<RawMap>>,
     size: Option<[usize; 2]>,
+}
+
+impl<'de> Deserialize<'de> for RawMap {
+    /// A table as derived (`remote = "Self"`); `0.8` as `{ constant = 0.8 }`,
+    /// `[r, g, b]` as `{ rgb = [r, g, b] }`.
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        use serde::de::{self, MapAccess, SeqAccess, Visitor};
+        struct Shorthand;
+        impl<'de> Visitor<'de> for Shorthand {
+            type Value = RawMap;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str(
+                    "a map: a number (a constant), a list [r, g, b] or a table \
+                     such as { pattern = \"stripes\", values = [a, b] }",
+                )
+            }
+            fn visit_f64<E: de::Error>(self, v: f64) -> std::result::Result<RawMap, E> {
+                Ok(RawMap {
+                    constant: Some(v),
+                    ..RawMap::default()
+                })
+            }
+            fn visit_i64<E: de::Error>(self, v: i64) -> std::result::Result<RawMap, E> {
+                self.visit_f64(v as f64)
+            }
+            fn visit_u64<E: de::Error>(self, v: u64) -> std::result::Result<RawMap, E> {
+                self.visit_f64(v as f64)
+            }
+            fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> std::result::Result<RawMap, A::Error> {
+                const RGB: &str = "three numbers [r, g, b]";
+                let mut rgb = [0.0; 3];
+                for (i, c) in rgb.iter_mut().enumerate() {
+                    *c = seq
+                        .next_element()?
+                        .ok_or_else(|| de::Error::invalid_length(i, &RGB))?;
+                }
+                let mut n = 3;
+                while seq.next_element::<de::IgnoredAny>()?.is_some() {
+                    n += 1;
+                }
+                if n != 3 {
+                    return Err(de::Error::invalid_length(n, &RGB));
+                }
+                Ok(RawMap {
+                    rgb: Some(rgb),
+                    ..RawMap::default()
+                })
+            }
+            fn visit_map<A: MapAccess<'de>>(self, map: A) -> std::result::Result<RawMap, A::Error> {
+                RawMap::deserialize(de::value::MapAccessDeserializer::new(map))
+            }
+        }
+        d.deserialize_any(Shorthand)
+    }
 }
 
 /// The light of a scene.
