@@ -139,6 +139,76 @@ fn float32_npy_textures_load_like_float64() {
     std::fs::remove_dir_all(&d).unwrap();
 }
 
+/// Writes a 2 × 2 PNG of `color` with 8-bit samples `data`.
+fn png(path: &Path, color: png::ColorType, data: &[u8]) {
+    let f = std::fs::File::create(path).unwrap();
+    let mut enc = png::Encoder::new(std::io::BufWriter::new(f), 2, 2);
+    enc.set_color(color);
+    enc.set_depth(png::BitDepth::Eight);
+    enc.write_header().unwrap().write_image_data(data).unwrap();
+}
+
+/// `transfer` is read in any letter case (`sRGB` as image tools write it),
+/// and a PNG with an alpha channel is refused naming the file, not loaded
+/// with its alpha silently dropped.
+#[test]
+fn png_transfer_in_any_case_and_alpha_refused() {
+    let d = tmpdir("png");
+    png(&d.join("g.png"), png::ColorType::Grayscale, &[0, 64, 128, 255]);
+    let with = |t: &str| {
+        load(
+            &d,
+            "t.toml",
+            &format!("texel = 1.0\nalbedo = {{ file = \"g.png\", transfer = \"{t}\" }}\n"),
+        )
+        .unwrap_or_else(|e| panic!("{t}: {e}"))
+    };
+    let srgb = bits(&with("srgb"));
+    let linear = bits(&with("linear"));
+    assert_ne!(srgb, linear);
+    for t in ["sRGB", "SRGB", "Srgb"] {
+        assert_eq!(bits(&with(t)), srgb, "{t}");
+    }
+    for t in ["Linear", "LINEAR"] {
+        assert_eq!(bits(&with(t)), linear, "{t}");
+    }
+    // Not a transfer: named as given, without debug text.
+    let e = load(
+        &d,
+        "gamma.toml",
+        "albedo = { file = \"g.png\", transfer = \"gamma2.2\" }\n",
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains("gamma.toml") && e.contains("albedo.transfer") && e.contains("'gamma2.2'"),
+        "{e}"
+    );
+    assert!(!e.contains("Some(") && !e.contains("None"), "{e}");
+    let e = load(&d, "none.toml", "albedo = { file = \"g.png\" }\n")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("albedo.transfer") && e.contains("missing"), "{e}");
+    assert!(!e.contains("Some(") && !e.contains("None"), "{e}");
+    // Alpha: RGBA and grey + alpha, as albedo and as density.
+    png(&d.join("rgba.png"), png::ColorType::Rgba, &[200; 16]);
+    png(&d.join("ga.png"), png::ColorType::GrayscaleAlpha, &[200; 8]);
+    for (file, key) in [("rgba.png", "albedo"), ("ga.png", "density")] {
+        let text = if key == "albedo" {
+            format!("albedo = {{ file = \"{file}\", transfer = \"sRGB\" }}\n")
+        } else {
+            format!(
+                "albedo = 0.5\ndensity = {{ file = \"{file}\", transfer = \"linear\" }}\n"
+            )
+        };
+        let e = load(&d, "alpha.toml", &text).unwrap_err().to_string();
+        for n in ["alpha.toml", &format!("{key}.file"), file, "alpha channel"] {
+            assert!(e.contains(n), "'{n}' not in: {e}");
+        }
+    }
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
 /// `albedo = 0.8` is `{ constant = 0.8 }`, `albedo = [r, g, b]` is
 /// `{ rgb = [r, g, b] }`, likewise for `density` and inside `channels`;
 /// a wrong shorthand is an error naming the line, not a serde type name.

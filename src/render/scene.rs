@@ -615,19 +615,33 @@ fn build_map(
             .extension()
             .map(|e| e.to_string_lossy().to_lowercase())
             .unwrap_or_default();
-        let transfer = raw.transfer.as_deref();
+        // Any letter case: "sRGB", "Linear".
+        let lower = raw.transfer.as_ref().map(|t| t.to_ascii_lowercase());
+        let transfer = lower.as_deref();
         match (ext.as_str(), transfer) {
             ("png", Some("srgb" | "linear")) | ("npy" | "exr", None | Some("linear")) => {}
-            ("png", t) => {
+            ("png", None) => {
                 return Err(bad(
                     ".transfer",
-                    format!("{t:?}: a PNG map needs transfer = \"srgb\" or \"linear\""),
+                    "missing: a PNG map needs transfer = \"srgb\" or \"linear\"".into(),
                 ));
             }
-            (_, Some(t)) => {
+            ("png", Some(_)) => {
                 return Err(bad(
                     ".transfer",
-                    format!("'{t}': .npy and .exr maps hold linear values"),
+                    format!(
+                        "'{}': a PNG map needs transfer = \"srgb\" or \"linear\"",
+                        raw.transfer.as_deref().unwrap_or_default()
+                    ),
+                ));
+            }
+            (_, Some(_)) => {
+                return Err(bad(
+                    ".transfer",
+                    format!(
+                        "'{}': .npy and .exr maps hold linear values",
+                        raw.transfer.as_deref().unwrap_or_default()
+                    ),
                 ));
             }
             _ => {}
@@ -804,9 +818,11 @@ fn load_exr(file: &Path, texel: f64) -> Result<Vec<TexelMap>> {
         .collect()
 }
 
-/// Loads an 8- or 16-bit PNG (grey or RGB, alpha ignored) as 1 or 3 maps
-/// with values v/(2^bits − 1), decoded from sRGB to linear if `srgb`
-/// (IEC 61966-2-1); row 0 of the image is +y.
+/// Loads an 8- or 16-bit PNG (grey or RGB) as 1 or 3 maps with values
+/// v/(2^bits − 1), decoded from sRGB to linear if `srgb` (IEC 61966-2-1);
+/// row 0 of the image is +y. An alpha channel (or a tRNS transparency,
+/// which the decoder expands to one) is refused: what would it mean for an
+/// albedo or a density?
 fn load_png(file: &Path, texel: f64, srgb: bool) -> Result<Vec<TexelMap>> {
     let bad = |e: &dyn std::fmt::Display| Error::format(file, "(png)", e.to_string());
     let f = std::fs::File::open(file).map_err(|e| Error::io(file, e))?;
@@ -816,16 +832,21 @@ fn load_png(file: &Path, texel: f64, srgb: bool) -> Result<Vec<TexelMap>> {
     let mut buf = vec![0; reader.output_buffer_size()];
     let info = reader.next_frame(&mut buf).map_err(|e| bad(&e))?;
     let (nx, ny) = (info.width as usize, info.height as usize);
-    let (colours, alpha) = match info.color_type {
-        png::ColorType::Grayscale => (1, 0),
-        png::ColorType::GrayscaleAlpha => (1, 1),
-        png::ColorType::Rgb => (3, 0),
-        png::ColorType::Rgba => (3, 1),
+    let colours = match info.color_type {
+        png::ColorType::Grayscale => 1,
+        png::ColorType::Rgb => 3,
+        png::ColorType::GrayscaleAlpha | png::ColorType::Rgba => {
+            return Err(Error::format(
+                file,
+                "(png)",
+                "has an alpha channel; svkernel reads grey or RGB maps: flatten the image first",
+            ));
+        }
         png::ColorType::Indexed => return Err(bad(&"indexed colour left unexpanded")),
     };
     let wide = info.bit_depth == png::BitDepth::Sixteen;
     let max = if wide { 65535.0 } else { 255.0 };
-    let stride = colours + alpha;
+    let stride = colours;
     let sample = |k: usize| -> f64 {
         let v = if wide {
             u16::from_be_bytes([buf[2 * k], buf[2 * k + 1]]) as f64
