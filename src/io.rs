@@ -97,7 +97,12 @@ pub fn check_header(
 /// path where serde reports it, and the line.
 pub fn read_json<T: DeserializeOwned>(path: &Path) -> Result<T> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    serde_json::from_str(&text).map_err(|e| {
+    parse_json(path, &text)
+}
+
+/// [`read_json`] on text already read from `path`.
+fn parse_json<T: DeserializeOwned>(path: &Path, text: &str) -> Result<T> {
+    serde_json::from_str(text).map_err(|e| {
         let key = if e.is_eof() {
             "(truncated file)".to_string()
         } else {
@@ -105,6 +110,108 @@ pub fn read_json<T: DeserializeOwned>(path: &Path) -> Result<T> {
         };
         Error::format(path, key, e)
     })
+}
+
+/// The header every document svkernel writes carries: its `format` tag
+/// and `version` (the rest of the document is skipped).
+#[derive(Clone, Debug, Default, PartialEq, serde::Deserialize)]
+pub struct Header {
+    pub format: Option<String>,
+    pub version: Option<u32>,
+}
+
+/// Reads just the header of the JSON document at `path` ([`Header`]; both
+/// fields `None` for JSON that is not an object).
+pub fn read_header(path: &Path) -> Result<Header> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    header_of(path, &text)
+}
+
+fn header_of(path: &Path, text: &str) -> Result<Header> {
+    if !text.trim_start().starts_with('{') {
+        // (Truncated or empty files are worded by the full parse.)
+        return parse_json::<serde::de::IgnoredAny>(path, text).map(|_| Header::default());
+    }
+    parse_json(path, text)
+}
+
+/// What a document of each `format` tag holds, in words.
+fn describe(format: &str) -> Option<&'static str> {
+    Some(match format {
+        crate::forward::profile::PROFILE_FORMAT => {
+            "a simulated profile, from `svkernel simulate profile`"
+        }
+        crate::forward::kernel::KERNEL_FORMAT => {
+            "a kernel tally, from `svkernel simulate kernels`"
+        }
+        crate::metamodel::basis::BASIS_FORMAT => "the basis BSSRDF model, from `svkernel fit profiles`",
+        crate::metamodel::meta::META_FORMAT => "the kernel meta-model, from `svkernel fit kernels`",
+        crate::render::reference::REFERENCE_FORMAT => {
+            "a reference tally, from `svkernel render --method reference`"
+        }
+        "svkernel.render" => "the summary of a render",
+        "svkernel.compare" => "the summary of a comparison",
+        "svkernel.experiments" => "the results of `svkernel experiments`",
+        "svkernel.checkpoint" => "a simulation checkpoint",
+        _ => return None,
+    })
+}
+
+/// "a `F` document (what it holds)" for the `format` tag F.
+fn document(format: &str) -> String {
+    match describe(format) {
+        Some(what) => format!("a `{format}` document ({what})"),
+        None => format!("a `{format}` document"),
+    }
+}
+
+/// Reads a versioned svkernel document: first just its header, so that a
+/// file of another kind is refused by its `format` tag ("is a
+/// `svkernel.kernels` document; expected a `svkernel.metamodel` document")
+/// rather than by the first field it lacks, then the whole document.
+/// Errors name the file and the key.
+pub fn read_document<T: DeserializeOwned>(
+    path: &Path,
+    expected_format: &str,
+    expected_version: u32,
+) -> Result<T> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let header = header_of(path, &text)?;
+    let expected = document(expected_format);
+    match header.format.as_deref() {
+        None => {
+            return Err(Error::format(
+                path,
+                "format",
+                format!("missing: not an svkernel document; expected {expected}"),
+            ));
+        }
+        Some(f) if f != expected_format => {
+            let found = if describe(f).is_some() {
+                document(f)
+            } else {
+                format!("a `{f}` document, not one svkernel writes")
+            };
+            return Err(Error::format(
+                path,
+                "format",
+                format!("this is {found}; expected {expected}"),
+            ));
+        }
+        Some(_) => {}
+    }
+    match header.version {
+        Some(v) if v == expected_version => {}
+        found => {
+            let found = found.map_or("none".to_string(), |v| v.to_string());
+            return Err(Error::format(
+                path,
+                "version",
+                format!("expected {expected_version}, found {found} (unsupported)"),
+            ));
+        }
+    }
+    parse_json(path, &text)
 }
 
 /// Writes an f64 array as `.npy` (readable by `numpy.load`), atomically.
@@ -138,6 +245,59 @@ mod tests {
         std::fs::write(&p, "{\"a\": ").unwrap();
         let e = read_json::<serde_json::Value>(&p).unwrap_err().to_string();
         assert!(e.contains("x.json") && e.contains("truncated"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn documents_are_told_apart_by_their_format_tag() {
+        let dir = std::env::temp_dir().join(format!("svk-io-doc-{}", std::process::id()));
+        let p = dir.join("doc.json");
+        let read = |text: &str| {
+            write_atomic(&p, text.as_bytes()).unwrap();
+            read_document::<serde_json::Value>(&p, crate::metamodel::meta::META_FORMAT, 1)
+                .map_err(|e| e.to_string())
+        };
+        let ok = r#"{"format": "svkernel.metamodel", "version": 1, "all": 3}"#;
+        assert_eq!(read(ok).unwrap()["all"], 3);
+        for (text, want) in [
+            // Another svkernel document: both formats named, in words.
+            (
+                r#"{"paths": 1, "format": "svkernel.kernels", "version": 2}"#,
+                &["doc.json", "`svkernel.kernels`", "kernel tally", "`svkernel.metamodel`"][..],
+            ),
+            (
+                r#"{"format": "geojson", "version": 1}"#,
+                &["`geojson`", "not one svkernel writes", "`svkernel.metamodel`"],
+            ),
+            // Not an svkernel document at all.
+            (r#"{"type": "FeatureCollection"}"#, &["doc.json", "not an svkernel document"]),
+            ("[1, 2, 3]", &["doc.json", "not an svkernel document"]),
+            // The right kind, another version.
+            (
+                r#"{"format": "svkernel.metamodel", "version": 7}"#,
+                &["version", "expected 1, found 7"],
+            ),
+            (
+                r#"{"format": "svkernel.metamodel"}"#,
+                &["version", "expected 1, found none"],
+            ),
+            // Damaged: still named as before.
+            (r#"{"format": "svkernel.meta"#, &["doc.json", "truncated"]),
+        ] {
+            let e = read(text).unwrap_err();
+            for w in want {
+                assert!(e.contains(w), "{text}: '{w}' not in: {e}");
+            }
+            assert!(!e.contains("Some(") && !e.contains("None"), "{e}");
+        }
+        write_atomic(&p, b"[1]").unwrap();
+        assert_eq!(
+            read_header(&p).unwrap(),
+            Header {
+                format: None,
+                version: None
+            }
+        );
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -597,12 +597,9 @@ fn print_summary(doc: &ProfileDoc) {
 
 /// Merges profile or kernel shards (the format of the first input decides).
 fn merge(inputs: Vec<PathBuf>, out: PathBuf) -> Result<()> {
-    #[derive(serde::Deserialize)]
-    struct Head {
-        format: String,
-    }
-    let head: Head = svkernel::io::read_json(&inputs[0])?;
-    if head.format == svkernel::render::reference::REFERENCE_FORMAT {
+    // (Anything else is loaded as a profile, whose loader names the format.)
+    let format = svkernel::io::read_header(&inputs[0])?.format;
+    if format.as_deref() == Some(svkernel::render::reference::REFERENCE_FORMAT) {
         svkernel::render::job::merge_reference(&inputs, &out)?;
         println!(
             "merged {} reference tallies into {}",
@@ -611,7 +608,7 @@ fn merge(inputs: Vec<PathBuf>, out: PathBuf) -> Result<()> {
         );
         return Ok(());
     }
-    if head.format == kernel::KERNEL_FORMAT {
+    if format.as_deref() == Some(kernel::KERNEL_FORMAT) {
         let docs = inputs
             .into_iter()
             .map(|p| KernelDoc::load(&p).map(|d| (p, d)))

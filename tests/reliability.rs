@@ -289,3 +289,78 @@ fn corrupted_models_and_tallies_fail_cleanly() {
     );
     std::fs::remove_dir_all(&d).unwrap();
 }
+
+/// A document of the wrong kind is named by its `format` tag (both the
+/// kind found and the kind expected), not by the first field it lacks; a
+/// JSON file that is no svkernel document says so.
+#[test]
+fn documents_of_the_wrong_kind_are_named_by_their_format() {
+    let d = tmpdir("kinds");
+    let out = d.join("out");
+    let o = out.to_str().unwrap();
+    let scene = d.join("s.toml");
+    std::fs::write(&scene, "albedo = 0.5\n[image]\nresolution = 4\n").unwrap();
+    let s = scene.to_str().unwrap();
+    let kernels = "data/kernels/eta1.5_g0.3_pencil.json";
+    let (basis, meta) = ("data/profiles/basis.json", "data/profiles/metamodel.json");
+    std::fs::write(d.join("other.json"), "{\"type\": \"FeatureCollection\"}").unwrap();
+    let other = d.join("other.json");
+    let other = other.to_str().unwrap();
+    let none = d.join("none");
+    let cases: &[(&[&str], &[&str])] = &[
+        (
+            &["kernel", "--d", "1", "--albedo", "0.5", "--model", kernels],
+            &[
+                "eta1.5_g0.3_pencil.json",
+                "`svkernel.kernels`",
+                "kernel tally",
+                "`svkernel.metamodel`",
+                "kernel meta-model",
+            ],
+        ),
+        (
+            &["profile", "--albedo", "0.5", "--model", meta],
+            &["metamodel.json", "`svkernel.metamodel`", "`svkernel.basis`"],
+        ),
+        (
+            &["render", s, "--method", "learned", "--model", basis, "--out", o],
+            &["basis.json", "`svkernel.basis`", "`svkernel.metamodel`"],
+        ),
+        (
+            &["render", s, "--method", "point", "--basis", kernels, "--out", o],
+            &["`svkernel.kernels`", "`svkernel.basis`"],
+        ),
+        (
+            &[
+                "render",
+                s,
+                "--method",
+                "reference",
+                "--reference-tally",
+                meta,
+                "--out",
+                o,
+            ],
+            &["metamodel.json", "`svkernel.metamodel`", "`svkernel.reference`"],
+        ),
+        (
+            &["kernel", "--d", "1", "--albedo", "0.5", "--model", other],
+            &["other.json", "not an svkernel document", "`svkernel.metamodel`"],
+        ),
+        (
+            &["merge", other, "--out", none.to_str().unwrap()],
+            &["other.json", "not an svkernel document"],
+        ),
+        (
+            &["merge", basis, "--out", none.to_str().unwrap()],
+            &["basis.json", "`svkernel.basis`", "`svkernel.profile`"],
+        ),
+    ];
+    for (args, needles) in cases {
+        let target = if args.contains(&"merge") { &none } else { &out };
+        fails(args, needles, target);
+        let err = String::from_utf8_lossy(&bin().args(*args).output().unwrap().stderr).into_owned();
+        assert!(!err.contains("missing field"), "{args:?}: {err}");
+    }
+    std::fs::remove_dir_all(&d).unwrap();
+}

@@ -626,12 +626,7 @@ impl KernelDoc {
 
     /// Loads and checks a kernel document (format, version, tally shape).
     pub fn load(path: &Path) -> Result<Self> {
-        let doc: KernelDoc = crate::io::read_json(path)?;
-        crate::io::check_header(
-            path,
-            (&doc.format, doc.version),
-            (KERNEL_FORMAT, KERNEL_VERSION),
-        )?;
+        let doc: KernelDoc = crate::io::read_document(path, KERNEL_FORMAT, KERNEL_VERSION)?;
         let c = &doc.config;
         let bins = c.grid.bins() + 1;
         let shape_ok = doc.tally.cells.len() == c.albedos.len()

@@ -235,12 +235,7 @@ impl ProfileDoc {
 
     /// Loads and checks a profile document.
     pub fn load(path: &Path) -> Result<Self> {
-        let doc: ProfileDoc = crate::io::read_json(path)?;
-        crate::io::check_header(
-            path,
-            (&doc.format, doc.version),
-            (PROFILE_FORMAT, PROFILE_VERSION),
-        )?;
+        let doc: ProfileDoc = crate::io::read_document(path, PROFILE_FORMAT, PROFILE_VERSION)?;
         let n = doc.config.bins.len();
         if doc.tally.exit_single.len() != n || doc.tally.exit_multi.len() != n {
             return Err(Error::format(

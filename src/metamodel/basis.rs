@@ -323,8 +323,7 @@ impl BasisModel {
     /// Loads and validates a model file.
     pub fn load(path: &std::path::Path) -> crate::Result<Self> {
         use crate::Error;
-        let m: BasisModel = crate::io::read_json(path)?;
-        crate::io::check_header(path, (&m.format, m.version), (BASIS_FORMAT, BASIS_VERSION))?;
+        let m: BasisModel = crate::io::read_document(path, BASIS_FORMAT, BASIS_VERSION)?;
         let rows_ok = |rows: &Vec<Vec<f64>>| {
             rows.iter()
                 .all(|r| r.len() == m.degree + 1 && r.iter().all(|v| v.is_finite()))

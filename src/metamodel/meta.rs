@@ -391,8 +391,7 @@ impl MetaModelFile {
 
     /// Loads and validates a meta-model file.
     pub fn load(path: &Path) -> Result<Self> {
-        let f: MetaModelFile = crate::io::read_json(path)?;
-        crate::io::check_header(path, (&f.format, f.version), (META_FORMAT, META_VERSION))?;
+        let f: MetaModelFile = crate::io::read_document(path, META_FORMAT, META_VERSION)?;
         f.all.check(path, "all")?;
         if let Some(m) = &f.first {
             m.check(path, "first")?;

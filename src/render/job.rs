@@ -135,12 +135,8 @@ impl ReferenceDoc {
     /// header, the tally's shape against its key (resolution, channels), and
     /// its path count against the chunks it claims. Errors name the file.
     pub fn load(path: &Path) -> Result<Self> {
-        let doc: ReferenceDoc = crate::io::read_json(path)?;
-        crate::io::check_header(
-            path,
-            (&doc.format, doc.version),
-            (REFERENCE_FORMAT, REFERENCE_VERSION),
-        )?;
+        let doc: ReferenceDoc =
+            crate::io::read_document(path, REFERENCE_FORMAT, REFERENCE_VERSION)?;
         let t = &doc.tally;
         let key_usize = |k: &str| doc.key.get(k).and_then(|v| v.as_u64());
         let cells = t.resolution * t.resolution * t.channels;
