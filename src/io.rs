@@ -183,7 +183,7 @@ pub fn read_document<T: DeserializeOwned>(
             return Err(Error::format(
                 path,
                 "format",
-                format!("missing: not an svkernel document; expected {expected}"),
+                format!("not an svkernel document (no format tag); expected {expected}"),
             ));
         }
         Some(f) if f != expected_format => {

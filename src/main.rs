@@ -597,7 +597,6 @@ fn print_summary(doc: &ProfileDoc) {
 
 /// Merges profile or kernel shards (the format of the first input decides).
 fn merge(inputs: Vec<PathBuf>, out: PathBuf) -> Result<()> {
-    // (Anything else is loaded as a profile, whose loader names the format.)
     let format = svkernel::io::read_header(&inputs[0])?.format;
     if format.as_deref() == Some(svkernel::render::reference::REFERENCE_FORMAT) {
         svkernel::render::job::merge_reference(&inputs, &out)?;
@@ -617,6 +616,18 @@ fn merge(inputs: Vec<PathBuf>, out: PathBuf) -> Result<()> {
         svkernel::io::write_json_compact_atomic(&out, &doc)?;
         print_kernel_summary(&doc);
         return Ok(());
+    }
+    if format.as_deref() != Some(profile::PROFILE_FORMAT) {
+        let found = format.map_or("not an svkernel document (no format tag)".into(), |f| {
+            format!("a `{f}` document")
+        });
+        bail!(
+            "{}: format: {found}; merge adds shards of `{}`, `{}` or `{}` documents",
+            inputs[0].display(),
+            profile::PROFILE_FORMAT,
+            kernel::KERNEL_FORMAT,
+            svkernel::render::reference::REFERENCE_FORMAT
+        );
     }
     let docs = inputs
         .into_iter()
