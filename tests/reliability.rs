@@ -364,3 +364,103 @@ fn documents_of_the_wrong_kind_are_named_by_their_format() {
     }
     std::fs::remove_dir_all(&d).unwrap();
 }
+
+/// The library names a parameter (`albedo`); the CLI names the flag that
+/// set it (`--albedo`), and a scene's value is named by the scene file and
+/// key (`medium.eta`), never by a flag the user did not type.
+#[test]
+fn parameter_errors_name_the_flag_or_the_scene_key() {
+    let d = tmpdir("params");
+    let out = d.join("out.json");
+    let o = out.to_str().unwrap();
+    let sim = |extra: &[&str]| -> Vec<String> {
+        let mut v: Vec<String> = ["simulate", "profile", "--albedo", "0.5", "--paths", "100"]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        v.extend(extra.iter().map(|s| s.to_string()));
+        v.extend(["--out".into(), o.into()]);
+        v
+    };
+    let scene = d.join("s.toml");
+    std::fs::write(&scene, "albedo = 0.5\n[image]\nresolution = 4\n").unwrap();
+    let s = scene.to_str().unwrap().to_string();
+    let cases: Vec<(Vec<String>, &str)> = vec![
+        (
+            ["profile", "--albedo", "2"].map(String::from).to_vec(),
+            "--albedo",
+        ),
+        (
+            ["simulate", "profile", "--albedo", "2", "--out", o]
+                .map(String::from)
+                .to_vec(),
+            "--albedo",
+        ),
+        (sim(&["--eta", "0.5"]), "--eta"),
+        (sim(&["--g", "1"]), "--g"),
+        (sim(&["--density", "0"]), "--density"),
+        (sim(&["--thickness", "-1"]), "--thickness"),
+        (sim(&["--source", "laser"]), "--source"),
+        (sim(&["--max-events", "0"]), "--max-events"),
+        (sim(&["--shard", "2/2"]), "--shard"),
+        (
+            ["simulate", "kernels", "--albedos", "0.5,1.2", "--out", o]
+                .map(String::from)
+                .to_vec(),
+            "--albedos",
+        ),
+        (
+            ["simulate", "kernels", "--rel-width", "2", "--out", o]
+                .map(String::from)
+                .to_vec(),
+            "--rel-width",
+        ),
+        (
+            ["kernel", "--d", "1", "--albedo", "0.5", "--vertices", "middle"]
+                .map(String::from)
+                .to_vec(),
+            "--vertices",
+        ),
+        (
+            ["fit", "density-step", "--albedos", "1.5"]
+                .map(String::from)
+                .to_vec(),
+            "--albedos",
+        ),
+        (
+            vec![
+                "render".into(),
+                s.clone(),
+                "--method".into(),
+                "magic".into(),
+                "--out".into(),
+                d.join("r").to_str().unwrap().into(),
+            ],
+            "--method",
+        ),
+    ];
+    for (args, flag) in &cases {
+        let args: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
+        fails(&args, &[&format!("invalid {flag} = ")], &out);
+        let err = String::from_utf8_lossy(&bin().args(&args).output().unwrap().stderr).into_owned();
+        assert!(!err.contains("Some(") && !err.contains("None"), "{err}");
+    }
+    // From a scene: the scene file and its key, not the flag.
+    for (text, key) in [
+        ("albedo = 0.5\n[medium]\neta = 0.5\n", "medium.eta"),
+        ("albedo = 0.5\nmedium = { g = 1.0 }\n", "medium.g"),
+    ] {
+        let p = d.join("medium.toml");
+        std::fs::write(&p, text).unwrap();
+        let r = d.join("r");
+        let o = bin()
+            .args(["render", p.to_str().unwrap(), "--out", r.to_str().unwrap()])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && !r.exists(), "{err}");
+        assert!(err.contains("medium.toml") && err.contains(key), "{key}: {err}");
+        assert!(!err.contains("--eta") && !err.contains("--g "), "{key}: {err}");
+    }
+    std::fs::remove_dir_all(&d).unwrap();
+}

@@ -47,7 +47,7 @@ pub fn rel_error(m: &Image, t: &Image) -> f64 {
 fn check_budgets(truth_paths: u64, spps: &[u32], paths: &[u64]) -> Result<()> {
     if spps.contains(&0) || paths.contains(&0) || truth_paths == 0 {
         return Err(Error::param(
-            "--spp-list/--paths-list/--truth-paths",
+            "budgets",
             "0",
             "budgets >= 1",
         ));

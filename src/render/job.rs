@@ -417,7 +417,7 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
     let tallies = opts.reference_tallies.len();
     if tallies > 0 && tallies != all_passes.len() {
         return Err(Error::param(
-            "--reference-tally",
+            "reference_tallies",
             format!("{tallies} files for {} passes", all_passes.len()),
             "one tally per pass, in the scene's order (its density sweep)",
         ));
@@ -485,7 +485,7 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                                     )
                                 });
                                 return Err(Error::param(
-                                    "--shard",
+                                    "shard",
                                     s,
                                     "a shard that holds chunks: at most as many shards \
                                      as chunks",

@@ -60,6 +60,7 @@
 
 use crate::error::{Error, Result};
 use crate::forward::maps::TexelMap;
+use crate::forward::medium::Medium;
 use crate::forward::rng::PathRng;
 use crate::render::svbssrdf::Method;
 use serde::Deserialize;
@@ -296,13 +297,8 @@ impl Scene {
             }
         };
         let m = &raw.medium;
-        in_range(
-            "medium.eta",
-            m.eta,
-            (1.0..=3.0).contains(&m.eta),
-            "in [1, 3]",
-        )?;
-        in_range("medium.g", m.g, m.g.abs() < 1.0, "in (-1, 1)")?;
+        // The medium's domain is the library's; its errors name the scene key.
+        Medium::new(0.5, m.g, m.eta, 1.0, None).map_err(|e| scene_key(path, e))?;
         in_range("texel", raw.texel, raw.texel > 0.0, "> 0")?;
         in_range(
             "light.radius",
@@ -454,6 +450,26 @@ impl Scene {
                 (m.nx, m.ny, &m.values)
                     == (self.albedo[0].nx, self.albedo[0].ny, &self.albedo[0].values)
             })
+    }
+}
+
+/// A library error about a parameter (`eta`) as the scene file's key that
+/// set it (`medium.eta`); other errors as they are.
+fn scene_key(path: &Path, e: Error) -> Error {
+    match e {
+        Error::Param {
+            name,
+            value,
+            allowed,
+        } => {
+            let key = match name {
+                "eta" => "medium.eta",
+                "g" => "medium.g",
+                other => other,
+            };
+            Error::format(path, key, format!("{value} must be {allowed}"))
+        }
+        e => e,
     }
 }
 
