@@ -24,6 +24,10 @@ fn fails(args: &[&str], needles: &[&str], out: &Path) {
     assert!(!o.status.success(), "{args:?} succeeded");
     assert_eq!(o.status.code(), Some(1), "{args:?}: {err}");
     assert!(!err.contains("panicked"), "{args:?}: {err}");
+    // Worded for the user: no Rust debug text, no serde type names.
+    for debug in ["Some(", "None", "RawMap", "RawScene", "expected struct"] {
+        assert!(!err.contains(debug), "{args:?}: '{debug}' in: {err}");
+    }
     for n in needles {
         assert!(err.contains(n), "{args:?}: '{n}' not in: {err}");
     }
@@ -103,6 +107,21 @@ fn bad_scenes_fail_cleanly_through_the_cli() {
             "junk-png",
             "albedo = { file = \"junk.png\", transfer = \"srgb\" }\n",
             &["junk.png"],
+        ),
+        (
+            "png-no-transfer",
+            "albedo = { file = \"junk.png\" }\n",
+            &["png-no-transfer.toml", "albedo.transfer", "srgb"],
+        ),
+        (
+            "png-transfer",
+            "albedo = { file = \"junk.png\", transfer = \"gamma\" }\n",
+            &["png-transfer.toml", "albedo.transfer", "'gamma'"],
+        ),
+        (
+            "string-map",
+            "albedo = \"white\"\n",
+            &["string-map.toml", "line 1", "a number"],
         ),
         (
             "zero-image",

@@ -203,7 +203,7 @@ pub fn fit_kernels(
     // inside LM is single-threaded).
     let fit_class = |class: VertexClass| {
         let cs = cells(&doc, class);
-        let what = format!("meta-model ({class:?} vertices)");
+        let what = format!("meta-model ({} vertices)", class.name());
         fit_meta(&cs, k, degree, &what).map(|r| (class, cs, r))
     };
     let (a, l) = rayon::join(

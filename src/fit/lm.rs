@@ -83,6 +83,33 @@ impl Default for FitOptions {
     }
 }
 
+/// Levenberg–Marquardt's termination reason in words (for reports and
+/// errors; not Rust's debug text).
+fn termination_text(t: &levenberg_marquardt::TerminationReason) -> String {
+    use levenberg_marquardt::TerminationReason as T;
+    match t {
+        T::User(what) => format!("the problem could not evaluate its {what}"),
+        T::Numerical(what) => format!("NaN or infinity in the {what}"),
+        T::ResidualsZero => "converged (residuals zero)".into(),
+        T::Orthogonal => "converged (gtol: residuals orthogonal to the Jacobian)".into(),
+        T::Converged { ftol, xtol } => {
+            let by: Vec<&str> = [(*ftol, "ftol"), (*xtol, "xtol")]
+                .iter()
+                .filter(|(on, _)| *on)
+                .map(|(_, n)| *n)
+                .collect();
+            format!("converged ({})", by.join(" and "))
+        }
+        T::NoImprovementPossible(tol) => {
+            format!("no improvement possible at the {tol} tolerance")
+        }
+        T::LostPatience => "lost patience (evaluation budget spent)".into(),
+        T::NoParameters => "no parameters".into(),
+        T::NoResiduals => "no residuals".into(),
+        T::WrongDimensions(what) => format!("wrong dimensions of the {what}"),
+    }
+}
+
 /// Solves `problem` from its current parameters.
 pub fn solve<P>(what: &str, problem: P, opts: &FitOptions) -> Result<(P, FitReport), FitError>
 where
@@ -117,7 +144,7 @@ where
         || matches!(report.termination, levenberg_marquardt::TerminationReason::NoImprovementPossible(_));
     let rep = FitReport {
         what: what.to_string(),
-        termination: format!("{:?}", report.termination),
+        termination: termination_text(&report.termination),
         success,
         evaluations: report.number_of_evaluations,
         chi2,

@@ -130,6 +130,12 @@ pub struct ReferenceDoc {
     pub provenance: Provenance,
 }
 
+/// Chunk ranges as `0..4, 8..12`.
+fn chunk_list(chunks: &[(u64, u64)]) -> String {
+    let parts: Vec<String> = chunks.iter().map(|(a, b)| format!("{a}..{b}")).collect();
+    parts.join(", ")
+}
+
 impl ReferenceDoc {
     /// Reads a reference tally document and checks that it is whole: its
     /// header, the tally's shape against its key (resolution, channels), and
@@ -162,8 +168,9 @@ impl ReferenceDoc {
                 path,
                 "tally.paths",
                 format!(
-                    "{} paths, but its chunks {:?} hold {claimed}",
-                    t.paths, doc.chunks
+                    "{} paths, but its chunks {} hold {claimed}",
+                    t.paths,
+                    chunk_list(&doc.chunks)
                 ),
             ));
         }
@@ -345,8 +352,12 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                 path,
                 "incidence",
                 format!(
-                    "'{}', but the scene's {:?} light needs a basis fitted to '{want}' profiles",
-                    model.incidence, scene.light
+                    "'{}', but the scene's {} light needs a basis fitted to '{want}' profiles",
+                    model.incidence,
+                    match scene.light {
+                        LightKind::Collimated => "collimated",
+                        LightKind::Diffuse => "diffuse",
+                    }
                 ),
             ));
         }
@@ -465,9 +476,10 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                                     path,
                                     "chunks",
                                     format!(
-                                        "covers chunks {:?} of 0..{}: merge every shard \
+                                        "covers chunks {} of 0..{}: merge every shard \
                                          first (`svkernel merge`)",
-                                        doc.chunks, all.1
+                                        chunk_list(&doc.chunks),
+                                        all.1
                                     ),
                                 ));
                             }

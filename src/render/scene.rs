@@ -351,7 +351,10 @@ impl Scene {
         if let Some(m) = methods.iter().find(|m| Method::parse(m).is_err()) {
             return Err(bad(
                 "methods",
-                format!("unknown method '{m}' (known: {:?})", method_names()),
+                format!(
+                    "unknown method '{m}' (known: {})",
+                    method_names().join(", ")
+                ),
             ));
         }
         if raw.samples == 0 {
