@@ -141,10 +141,10 @@ fn describe(format: &str) -> Option<&'static str> {
         crate::forward::profile::PROFILE_FORMAT => {
             "a simulated profile, from `svkernel simulate profile`"
         }
-        crate::forward::kernel::KERNEL_FORMAT => {
-            "a kernel tally, from `svkernel simulate kernels`"
+        crate::forward::kernel::KERNEL_FORMAT => "a kernel tally, from `svkernel simulate kernels`",
+        crate::metamodel::basis::BASIS_FORMAT => {
+            "the basis BSSRDF model, from `svkernel fit profiles`"
         }
-        crate::metamodel::basis::BASIS_FORMAT => "the basis BSSRDF model, from `svkernel fit profiles`",
         crate::metamodel::meta::META_FORMAT => "the kernel meta-model, from `svkernel fit kernels`",
         crate::render::reference::REFERENCE_FORMAT => {
             "a reference tally, from `svkernel render --method reference`"
@@ -263,14 +263,26 @@ mod tests {
             // Another svkernel document: both formats named, in words.
             (
                 r#"{"paths": 1, "format": "svkernel.kernels", "version": 2}"#,
-                &["doc.json", "`svkernel.kernels`", "kernel tally", "`svkernel.metamodel`"][..],
+                &[
+                    "doc.json",
+                    "`svkernel.kernels`",
+                    "kernel tally",
+                    "`svkernel.metamodel`",
+                ][..],
             ),
             (
                 r#"{"format": "geojson", "version": 1}"#,
-                &["`geojson`", "not one svkernel writes", "`svkernel.metamodel`"],
+                &[
+                    "`geojson`",
+                    "not one svkernel writes",
+                    "`svkernel.metamodel`",
+                ],
             ),
             // Not an svkernel document at all.
-            (r#"{"type": "FeatureCollection"}"#, &["doc.json", "not an svkernel document"]),
+            (
+                r#"{"type": "FeatureCollection"}"#,
+                &["doc.json", "not an svkernel document"],
+            ),
             ("[1, 2, 3]", &["doc.json", "not an svkernel document"]),
             // The right kind, another version.
             (

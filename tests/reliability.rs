@@ -342,11 +342,15 @@ fn documents_of_the_wrong_kind_are_named_by_their_format() {
             &["metamodel.json", "`svkernel.metamodel`", "`svkernel.basis`"],
         ),
         (
-            &["render", s, "--method", "learned", "--model", basis, "--out", o],
+            &[
+                "render", s, "--method", "learned", "--model", basis, "--out", o,
+            ],
             &["basis.json", "`svkernel.basis`", "`svkernel.metamodel`"],
         ),
         (
-            &["render", s, "--method", "point", "--basis", kernels, "--out", o],
+            &[
+                "render", s, "--method", "point", "--basis", kernels, "--out", o,
+            ],
             &["`svkernel.kernels`", "`svkernel.basis`"],
         ),
         (
@@ -360,11 +364,19 @@ fn documents_of_the_wrong_kind_are_named_by_their_format() {
                 "--out",
                 o,
             ],
-            &["metamodel.json", "`svkernel.metamodel`", "`svkernel.reference`"],
+            &[
+                "metamodel.json",
+                "`svkernel.metamodel`",
+                "`svkernel.reference`",
+            ],
         ),
         (
             &["kernel", "--d", "1", "--albedo", "0.5", "--model", other],
-            &["other.json", "not an svkernel document", "`svkernel.metamodel`"],
+            &[
+                "other.json",
+                "not an svkernel document",
+                "`svkernel.metamodel`",
+            ],
         ),
         (
             &["merge", other, "--out", none.to_str().unwrap()],
@@ -435,9 +447,17 @@ fn parameter_errors_name_the_flag_or_the_scene_key() {
             "--rel-width",
         ),
         (
-            ["kernel", "--d", "1", "--albedo", "0.5", "--vertices", "middle"]
-                .map(String::from)
-                .to_vec(),
+            [
+                "kernel",
+                "--d",
+                "1",
+                "--albedo",
+                "0.5",
+                "--vertices",
+                "middle",
+            ]
+            .map(String::from)
+            .to_vec(),
             "--vertices",
         ),
         (
@@ -478,8 +498,14 @@ fn parameter_errors_name_the_flag_or_the_scene_key() {
             .unwrap();
         let err = String::from_utf8_lossy(&o.stderr);
         assert!(!o.status.success() && !r.exists(), "{err}");
-        assert!(err.contains("medium.toml") && err.contains(key), "{key}: {err}");
-        assert!(!err.contains("--eta") && !err.contains("--g "), "{key}: {err}");
+        assert!(
+            err.contains("medium.toml") && err.contains(key),
+            "{key}: {err}"
+        );
+        assert!(
+            !err.contains("--eta") && !err.contains("--g "),
+            "{key}: {err}"
+        );
     }
     std::fs::remove_dir_all(&d).unwrap();
 }

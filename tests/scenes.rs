@@ -154,7 +154,11 @@ fn png(path: &Path, color: png::ColorType, data: &[u8]) {
 #[test]
 fn png_transfer_in_any_case_and_alpha_refused() {
     let d = tmpdir("png");
-    png(&d.join("g.png"), png::ColorType::Grayscale, &[0, 64, 128, 255]);
+    png(
+        &d.join("g.png"),
+        png::ColorType::Grayscale,
+        &[0, 64, 128, 255],
+    );
     let with = |t: &str| {
         load(
             &d,
@@ -188,7 +192,10 @@ fn png_transfer_in_any_case_and_alpha_refused() {
     let e = load(&d, "none.toml", "albedo = { file = \"g.png\" }\n")
         .unwrap_err()
         .to_string();
-    assert!(e.contains("albedo.transfer") && e.contains("missing"), "{e}");
+    assert!(
+        e.contains("albedo.transfer") && e.contains("missing"),
+        "{e}"
+    );
     assert!(!e.contains("Some(") && !e.contains("None"), "{e}");
     // Alpha: RGBA and grey + alpha, as albedo and as density.
     png(&d.join("rgba.png"), png::ColorType::Rgba, &[200; 16]);
@@ -197,9 +204,7 @@ fn png_transfer_in_any_case_and_alpha_refused() {
         let text = if key == "albedo" {
             format!("albedo = {{ file = \"{file}\", transfer = \"sRGB\" }}\n")
         } else {
-            format!(
-                "albedo = 0.5\ndensity = {{ file = \"{file}\", transfer = \"linear\" }}\n"
-            )
+            format!("albedo = 0.5\ndensity = {{ file = \"{file}\", transfer = \"linear\" }}\n")
         };
         let e = load(&d, "alpha.toml", &text).unwrap_err().to_string();
         for n in ["alpha.toml", &format!("{key}.file"), file, "alpha channel"] {
@@ -239,7 +244,9 @@ fn scalar_and_list_shorthands_for_maps() {
         "albedo = { rgb = [0.8, 0.5, 0.3] }\n",
     );
     // Domain checks still apply to the shorthand.
-    let e = load(&d, "over.toml", "albedo = 1.5\n").unwrap_err().to_string();
+    let e = load(&d, "over.toml", "albedo = 1.5\n")
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("over.toml") && e.contains("albedo"), "{e}");
     for (text, want) in [
         ("albedo = [0.8, 0.5]\n", "three numbers"),
@@ -251,7 +258,10 @@ fn scalar_and_list_shorthands_for_maps() {
             e.contains("bad.toml") && e.contains("line 1") && e.contains(want),
             "{text}: {e}"
         );
-        assert!(!e.contains("RawMap") && !e.contains("struct"), "{text}: {e}");
+        assert!(
+            !e.contains("RawMap") && !e.contains("struct"),
+            "{text}: {e}"
+        );
     }
     std::fs::remove_dir_all(&d).unwrap();
 }

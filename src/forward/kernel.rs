@@ -417,11 +417,7 @@ impl KernelConfig {
             })?;
         }
         if self.distances.is_empty() {
-            return Err(Error::param(
-                "distances",
-                "(none)",
-                "at least one distance",
-            ));
+            return Err(Error::param("distances", "(none)", "at least one distance"));
         }
         if !(self.rel_width > 0.0 && self.rel_width < 1.0) {
             return Err(Error::param("rel_width", self.rel_width, "in (0, 1)"));
@@ -692,7 +688,10 @@ impl KernelDoc {
 
 /// `0.1,0.25,0.5`: a list as the command line takes it.
 fn list(v: &[f64]) -> String {
-    v.iter().map(|x| x.to_string()).collect::<Vec<_>>().join(",")
+    v.iter()
+        .map(|x| x.to_string())
+        .collect::<Vec<_>>()
+        .join(",")
 }
 
 /// Merges shard documents into one (see [`super::profile::merge`]).

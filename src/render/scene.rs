@@ -207,7 +207,10 @@ impl<'de> Deserialize<'de> for RawMap {
             fn visit_u64<E: de::Error>(self, v: u64) -> std::result::Result<RawMap, E> {
                 self.visit_f64(v as f64)
             }
-            fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> std::result::Result<RawMap, A::Error> {
+            fn visit_seq<A: SeqAccess<'de>>(
+                self,
+                mut seq: A,
+            ) -> std::result::Result<RawMap, A::Error> {
                 const RGB: &str = "three numbers [r, g, b]";
                 let mut rgb = [0.0; 3];
                 for (i, c) in rgb.iter_mut().enumerate() {
