@@ -14,21 +14,48 @@ pub trait Document: Serialize + DeserializeOwned {
     const FORMAT: &'static str;
     /// The version this build reads and writes.
     const VERSION: u32;
-    /// What the document is, in words ("kernel meta-model").
-    const WHAT: &'static str;
     /// Checks shapes and values; errors name `origin` and the key.
     fn validate(&self, origin: &Path) -> Result<()>;
 }
 
-/// The documents this crate knows, for naming a file of the wrong kind.
-const KNOWN: &[(&str, &str)] = &[
-    ("svkernel.profile", "radial profile"),
-    ("svkernel.kernels", "kernel tally"),
-    ("svkernel.basis", "basis BSSRDF model"),
-    ("svkernel.metamodel", "kernel meta-model"),
-    ("svkernel.reference", "reference tally"),
-    ("svkernel.checkpoint", "checkpoint"),
-];
+/// What a document of each `format` tag holds, in words.
+fn describe(format: &str) -> Option<&'static str> {
+    Some(match format {
+        "svkernel.profile" => "a simulated profile, from `svkernel simulate profile`",
+        "svkernel.kernels" => "a kernel tally, from `svkernel simulate kernels`",
+        "svkernel.basis" => "the basis BSSRDF model, from `svkernel fit profiles`",
+        "svkernel.metamodel" => "the kernel meta-model, from `svkernel fit kernels`",
+        "svkernel.reference" => "a reference tally, from `svkernel render --method reference`",
+        "svkernel.render" => "the summary of a render",
+        "svkernel.compare" => "the summary of a comparison",
+        "svkernel.experiments" => "the results of `svkernel experiments`",
+        "svkernel.checkpoint" => "a simulation checkpoint",
+        _ => return None,
+    })
+}
+
+/// "a `F` document (what it holds)" for the `format` tag F.
+fn document(format: &str) -> String {
+    match describe(format) {
+        Some(what) => format!("a `{format}` document ({what})"),
+        None => format!("a `{format}` document"),
+    }
+}
+
+/// The `format` tag of a JSON document, if it has one (`None` also for
+/// JSON that is not an object); errors name `origin`.
+pub fn format_of(text: &str, origin: &Path) -> Result<Option<String>> {
+    if !text.trim_start().starts_with('{') {
+        // Truncated or empty text is worded by the full parse.
+        serde_json::from_str::<serde::de::IgnoredAny>(text).map_err(|e| json_error(origin, e))?;
+        return Ok(None);
+    }
+    let head: Header = serde_json::from_str(text).map_err(|e| json_error(origin, e))?;
+    Ok(match head.format {
+        Some(serde_json::Value::String(f)) => Some(f),
+        _ => None,
+    })
+}
 
 #[derive(Deserialize)]
 struct Header {
@@ -49,48 +76,41 @@ pub fn json_error(origin: &Path, e: serde_json::Error) -> Error {
 /// Parses a document of type `T`: first its header (a file of another kind
 /// is named by its `format` tag), then the whole, then [`Document::validate`].
 pub fn from_json<T: Document>(text: &str, origin: &Path) -> Result<T> {
-    let head: Header = serde_json::from_str(text).map_err(|e| json_error(origin, e))?;
-    let want = || format!("expected a {} (`{}`)", T::WHAT, T::FORMAT);
-    match head.format {
-        Some(serde_json::Value::String(f)) if f == T::FORMAT => {}
-        Some(serde_json::Value::String(f)) => {
-            let what = KNOWN
-                .iter()
-                .find(|(tag, _)| *tag == f)
-                .map(|(_, w)| format!("a {w} (`{f}`)"))
-                .unwrap_or_else(|| format!("a `{f}` document"));
+    let expected = document(T::FORMAT);
+    match format_of(text, origin)?.as_deref() {
+        Some(f) if f == T::FORMAT => {}
+        Some(f) => {
+            let found = if describe(f).is_some() {
+                document(f)
+            } else {
+                format!("a `{f}` document, not one svkernel writes")
+            };
             return Err(Error::format(
                 origin,
                 "format",
-                format!("this is {what}; {}", want()),
-            ));
-        }
-        _ => {
-            return Err(Error::format(
-                origin,
-                "format",
-                format!("no `format` tag: not an svkernel document; {}", want()),
-            ));
-        }
-    }
-    match head.version.as_ref().and_then(|v| v.as_u64()) {
-        Some(v) if v == u64::from(T::VERSION) => {}
-        Some(v) => {
-            return Err(Error::format(
-                origin,
-                "version",
-                format!(
-                    "version {v} is not supported: this build reads version {} of `{}`",
-                    T::VERSION,
-                    T::FORMAT
-                ),
+                format!("this is {found}; expected {expected}"),
             ));
         }
         None => {
             return Err(Error::format(
                 origin,
+                "format",
+                format!("not an svkernel document (no format tag); expected {expected}"),
+            ));
+        }
+    }
+    let head: Header = serde_json::from_str(text).map_err(|e| json_error(origin, e))?;
+    match head.version.as_ref().and_then(|v| v.as_u64()) {
+        Some(v) if v == u64::from(T::VERSION) => {}
+        found => {
+            let found = found.map_or("none".to_string(), |v| v.to_string());
+            return Err(Error::format(
+                origin,
                 "version",
-                "missing or not a whole number",
+                format!(
+                    "expected {}, found {found} (unsupported by this build)",
+                    T::VERSION
+                ),
             ));
         }
     }
@@ -107,4 +127,44 @@ pub fn to_json<T: Serialize>(doc: &T, compact: bool, origin: &Path) -> Result<Ve
         serde_json::to_vec_pretty(doc)
     }
     .map_err(|e| Error::format(origin, "(serialise)", e))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::metamodel::meta::MetaModelFile;
+
+    fn err(text: &str) -> String {
+        from_json::<MetaModelFile>(text, Path::new("m.json"))
+            .unwrap_err()
+            .to_string()
+    }
+
+    #[test]
+    fn a_document_of_another_kind_is_named_by_its_tag() {
+        let e = err(r#"{"format": "svkernel.kernels", "version": 2, "paths": 1}"#);
+        assert!(
+            e.contains("m.json")
+                && e.contains("`svkernel.kernels`")
+                && e.contains("kernel tally")
+                && e.contains("expected a `svkernel.metamodel`"),
+            "{e}"
+        );
+        let e = err(r#"{"format": "other.thing"}"#);
+        assert!(
+            e.contains("`other.thing`") && e.contains("not one svkernel writes"),
+            "{e}"
+        );
+        for untagged in [r#"{"all": 1}"#, "[1, 2]", "3"] {
+            let e = err(untagged);
+            assert!(e.contains("not an svkernel document"), "{e}");
+        }
+        let e = err(r#"{"format": "svkernel.metamodel", "version": 7}"#);
+        assert!(e.contains("version") && e.contains("found 7"), "{e}");
+        let e = err(r#"{"format": "svkernel.metamodel"}"#);
+        assert!(e.contains("version") && e.contains("found none"), "{e}");
+        let e = err(r#"{"format": "svkernel.meta"#);
+        assert!(e.contains("truncated"), "{e}");
+        assert!(!e.contains("missing field"), "{e}");
+    }
 }

@@ -3,12 +3,16 @@
 use std::path::PathBuf;
 
 /// Every error the library reports. Each variant names what was wrong and
-/// where (flag, file, key), so the CLI can print it as is.
+/// where (parameter, file, key), so the CLI can print it as is (after
+/// naming a parameter by its flag).
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum Error {
-    /// A parameter outside its domain (e.g. `--albedo 1.2`); `name` is the
-    /// command-line flag that sets it.
+    /// A parameter outside its domain (e.g. an albedo of 1.2); `name` is the
+    /// library's name of the parameter (`albedo`, `eta`, `max_events`,
+    /// `meta_model`, …), not how a user set it: the layer above names that
+    /// (the CLI maps it to its flag, `--albedo`; the scene loader to the
+    /// scene file and key, `medium.eta`).
     #[error("invalid {name} = {value}: must be {allowed}")]
     Param {
         name: &'static str,

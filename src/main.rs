@@ -641,12 +641,8 @@ fn print_summary(doc: &ProfileDoc) {
 
 /// Merges profile or kernel shards (the format of the first input decides).
 fn merge(inputs: Vec<PathBuf>, out: PathBuf) -> Result<()> {
-    #[derive(serde::Deserialize)]
-    struct Head {
-        format: String,
-    }
-    let head: Head = svkernel::jobs::store::read_json(&inputs[0])?;
-    if head.format == svkernel::render::reference::REFERENCE_FORMAT {
+    let format = svkernel::jobs::store::read_format(&inputs[0])?;
+    if format.as_deref() == Some(svkernel::render::reference::REFERENCE_FORMAT) {
         svkernel::jobs::render::merge_reference(&inputs, &out)?;
         println!(
             "merged {} reference tallies into {}",
@@ -655,7 +651,7 @@ fn merge(inputs: Vec<PathBuf>, out: PathBuf) -> Result<()> {
         );
         return Ok(());
     }
-    if head.format == kernel::KERNEL_FORMAT {
+    if format.as_deref() == Some(kernel::KERNEL_FORMAT) {
         let docs = inputs
             .into_iter()
             .map(|p| KernelDoc::load(&p).map(|d| (p, d)))
@@ -664,6 +660,18 @@ fn merge(inputs: Vec<PathBuf>, out: PathBuf) -> Result<()> {
         svkernel::jobs::store::write_json_compact_atomic(&out, &doc)?;
         print_kernel_summary(&doc);
         return Ok(());
+    }
+    if format.as_deref() != Some(profile::PROFILE_FORMAT) {
+        let found = format.map_or("not an svkernel document (no format tag)".into(), |f| {
+            format!("a `{f}` document")
+        });
+        bail!(
+            "{}: format: {found}; merge adds shards of `{}`, `{}` or `{}` documents",
+            inputs[0].display(),
+            profile::PROFILE_FORMAT,
+            kernel::KERNEL_FORMAT,
+            svkernel::render::reference::REFERENCE_FORMAT
+        );
     }
     let docs = inputs
         .into_iter()
@@ -867,7 +875,7 @@ fn fit(f: Fit) -> Result<()> {
         } => {
             use svkernel::jobs::fit_kernels::density_step_experiment;
             for a in &albedos {
-                Medium::default_with_albedo(*a)?;
+                Medium::default_with_albedo(*a).map_err(|e| param_as(e, "albedo", "albedos"))?;
             }
             if let Some(d) = distances.iter().find(|d| !(**d > 0.0 && d.is_finite())) {
                 bail!("invalid --distances: {d} must be finite and > 0");
@@ -1202,6 +1210,70 @@ fn render(a: RenderArgs) -> Result<()> {
     Ok(())
 }
 
+/// The flag that sets each parameter the library names in its errors
+/// ([`svkernel::Error::Param`]); names not listed print as they are.
+const FLAGS: &[(&str, &str)] = &[
+    ("albedo", "--albedo"),
+    ("albedos", "--albedos"),
+    ("eta", "--eta"),
+    ("g", "--g"),
+    ("density", "--density"),
+    ("thickness", "--thickness"),
+    ("source", "--source"),
+    ("paths", "--paths"),
+    ("shard", "--shard"),
+    ("max_events", "--max-events"),
+    ("distances", "--distances"),
+    ("rel_width", "--rel-width"),
+    ("grid", "--nu/--nv/--extent"),
+    ("vertices", "--vertices"),
+    ("meta_model", "--model"),
+    ("method", "--method"),
+    ("sampling", "--sampling"),
+    ("spp", "--spp (or the scene's samples)"),
+    ("reference_tallies", "--reference-tally"),
+    ("budgets", "--spp-list/--paths-list/--truth-paths"),
+];
+
+/// A library error about a parameter, named by the flag that set it
+/// (`albedo` → `--albedo`); other errors as they are.
+fn named_by_flag(e: anyhow::Error) -> anyhow::Error {
+    match e.downcast::<svkernel::Error>() {
+        Ok(svkernel::Error::Param {
+            name,
+            value,
+            allowed,
+        }) => svkernel::Error::Param {
+            name: FLAGS
+                .iter()
+                .find(|(p, _)| *p == name)
+                .map_or(name, |(_, flag)| flag),
+            value,
+            allowed,
+        }
+        .into(),
+        Ok(other) => other.into(),
+        Err(e) => e,
+    }
+}
+
+/// `e`'s parameter `from` renamed `to` (a library parameter that a
+/// command sets through another flag).
+fn param_as(e: svkernel::Error, from: &str, to: &'static str) -> svkernel::Error {
+    match e {
+        svkernel::Error::Param {
+            name,
+            value,
+            allowed,
+        } if name == from => svkernel::Error::Param {
+            name: to,
+            value,
+            allowed,
+        },
+        e => e,
+    }
+}
+
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
@@ -1262,6 +1334,7 @@ fn main() -> std::process::ExitCode {
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
+            let e = named_by_flag(e);
             // The chain of causes, each once: a library error's message
             // often already holds its source's (a file's "No such file").
             let mut msg = e.to_string();

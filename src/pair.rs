@@ -23,13 +23,22 @@ impl VertexClass {
         self as usize
     }
 
+    /// `all`, `first` or `last` (as [`Self::parse`] reads it).
+    pub fn name(self) -> &'static str {
+        match self {
+            VertexClass::All => "all",
+            VertexClass::First => "first",
+            VertexClass::Last => "last",
+        }
+    }
+
     /// Parses `all|first|last`.
     pub fn parse(s: &str) -> Result<Self> {
         match s {
             "all" => Ok(VertexClass::All),
             "first" => Ok(VertexClass::First),
             "last" => Ok(VertexClass::Last),
-            _ => Err(Error::param("--vertices", s, "all, first or last")),
+            _ => Err(Error::param("vertices", s, "all, first or last")),
         }
     }
 }

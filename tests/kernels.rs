@@ -283,20 +283,28 @@ fn hard_cases_stay_finite() {
 fn bad_configurations_are_refused() {
     let good = config(&[0.5], &[1.0, 2.0], 1.0, 100, 1);
     assert!(good.validate().is_ok());
+    // The library names the parameter (the CLI names its flag).
+    let name = |c: &KernelConfig| match c.validate() {
+        Err(svkernel::Error::Param { name, .. }) => name,
+        other => panic!("expected a parameter error, got {other:?}"),
+    };
     let mut c = good.clone();
     c.distances = vec![1.0, 1.1]; // overlapping bins
-    assert!(
-        c.validate()
-            .unwrap_err()
-            .to_string()
-            .contains("--distances")
-    );
+    assert_eq!(name(&c), "distances");
+    let e = c.validate().unwrap_err().to_string();
+    assert!(e.contains("1,1.1") && !e.contains('['), "{e}");
     let mut c = good.clone();
     c.albedos = vec![1.2];
-    assert!(c.validate().unwrap_err().to_string().contains("--albedo"));
+    assert_eq!(name(&c), "albedos");
+    let mut c = good.clone();
+    c.rel_width = 1.5;
+    assert_eq!(name(&c), "rel_width");
+    let mut c = good.clone();
+    c.max_events = 0;
+    assert_eq!(name(&c), "max_events");
     let mut c = good;
     c.density = 0.0;
-    assert!(c.validate().unwrap_err().to_string().contains("--density"));
+    assert_eq!(name(&c), "density");
 }
 
 #[test]

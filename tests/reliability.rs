@@ -27,13 +27,21 @@ fn tmpdir(name: &str) -> PathBuf {
 }
 
 /// Runs `args`, expects failure without a panic, every needle in stderr,
-/// and `out` not created.
+/// and `out` not created. The exit code is 1, or 2 for a value the
+/// command line itself refuses (clap's usage errors, which list the
+/// accepted values).
 fn fails(args: &[&str], needles: &[&str], out: &Path) {
     let o = bin().args(args).output().unwrap();
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success(), "{args:?} succeeded");
-    assert_eq!(o.status.code(), Some(1), "{args:?}: {err}");
+    let usage = err.starts_with("error: invalid value");
+    let want = if usage { 2 } else { 1 };
+    assert_eq!(o.status.code(), Some(want), "{args:?}: {err}");
     assert!(!err.contains("panicked"), "{args:?}: {err}");
+    // Worded for the user: no Rust debug text, no serde type names.
+    for debug in ["Some(", "None", "RawMap", "RawScene", "expected struct"] {
+        assert!(!err.contains(debug), "{args:?}: '{debug}' in: {err}");
+    }
     for n in needles {
         assert!(err.contains(n), "{args:?}: '{n}' not in: {err}");
     }
@@ -113,6 +121,21 @@ fn bad_scenes_fail_cleanly_through_the_cli() {
             "junk-png",
             "albedo = { file = \"junk.png\", transfer = \"srgb\" }\n",
             &["junk.png"],
+        ),
+        (
+            "png-no-transfer",
+            "albedo = { file = \"junk.png\" }\n",
+            &["png-no-transfer.toml", "albedo.transfer", "srgb"],
+        ),
+        (
+            "png-transfer",
+            "albedo = { file = \"junk.png\", transfer = \"gamma\" }\n",
+            &["png-transfer.toml", "albedo.transfer", "'gamma'"],
+        ),
+        (
+            "string-map",
+            "albedo = \"white\"\n",
+            &["string-map.toml", "line 1", "a number"],
         ),
         (
             "zero-image",
@@ -297,5 +320,213 @@ fn corrupted_models_and_tallies_fail_cleanly() {
         &["budgets"],
         &out,
     );
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+/// A document of the wrong kind is named by its `format` tag (both the
+/// kind found and the kind expected), not by the first field it lacks; a
+/// JSON file that is no svkernel document says so.
+#[test]
+fn documents_of_the_wrong_kind_are_named_by_their_format() {
+    let d = tmpdir("kinds");
+    let out = d.join("out");
+    let o = out.to_str().unwrap();
+    let scene = d.join("s.toml");
+    std::fs::write(&scene, "albedo = 0.5\n[image]\nresolution = 4\n").unwrap();
+    let s = scene.to_str().unwrap();
+    let kernels = "data/kernels/eta1.5_g0.3_pencil.json";
+    let (basis, meta) = ("data/profiles/basis.json", "data/profiles/metamodel.json");
+    std::fs::write(d.join("other.json"), "{\"type\": \"FeatureCollection\"}").unwrap();
+    let other = d.join("other.json");
+    let other = other.to_str().unwrap();
+    let none = d.join("none");
+    let cases: &[(&[&str], &[&str])] = &[
+        (
+            &["kernel", "--d", "1", "--albedo", "0.5", "--model", kernels],
+            &[
+                "eta1.5_g0.3_pencil.json",
+                "`svkernel.kernels`",
+                "kernel tally",
+                "`svkernel.metamodel`",
+                "kernel meta-model",
+            ],
+        ),
+        (
+            &["profile", "--albedo", "0.5", "--model", meta],
+            &["metamodel.json", "`svkernel.metamodel`", "`svkernel.basis`"],
+        ),
+        (
+            &[
+                "render", s, "--method", "learned", "--model", basis, "--out", o,
+            ],
+            &["basis.json", "`svkernel.basis`", "`svkernel.metamodel`"],
+        ),
+        (
+            &[
+                "render", s, "--method", "point", "--basis", kernels, "--out", o,
+            ],
+            &["`svkernel.kernels`", "`svkernel.basis`"],
+        ),
+        (
+            &[
+                "render",
+                s,
+                "--method",
+                "reference",
+                "--reference-tally",
+                meta,
+                "--out",
+                o,
+            ],
+            &[
+                "metamodel.json",
+                "`svkernel.metamodel`",
+                "`svkernel.reference`",
+            ],
+        ),
+        (
+            &["kernel", "--d", "1", "--albedo", "0.5", "--model", other],
+            &[
+                "other.json",
+                "not an svkernel document",
+                "`svkernel.metamodel`",
+            ],
+        ),
+        (
+            &["merge", other, "--out", none.to_str().unwrap()],
+            &["other.json", "not an svkernel document"],
+        ),
+        (
+            &["merge", basis, "--out", none.to_str().unwrap()],
+            &["basis.json", "`svkernel.basis`", "`svkernel.profile`"],
+        ),
+    ];
+    for (args, needles) in cases {
+        let target = if args.contains(&"merge") { &none } else { &out };
+        fails(args, needles, target);
+        let err = String::from_utf8_lossy(&bin().args(*args).output().unwrap().stderr).into_owned();
+        assert!(!err.contains("missing field"), "{args:?}: {err}");
+    }
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+/// The library names a parameter (`albedo`); the CLI names the flag that
+/// set it (`--albedo`), and a scene's value is named by the scene file and
+/// key (`medium.eta`), never by a flag the user did not type.
+#[test]
+fn parameter_errors_name_the_flag_or_the_scene_key() {
+    let d = tmpdir("params");
+    let out = d.join("out.json");
+    let o = out.to_str().unwrap();
+    let sim = |extra: &[&str]| -> Vec<String> {
+        let mut v: Vec<String> = ["simulate", "profile", "--albedo", "0.5", "--paths", "100"]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        v.extend(extra.iter().map(|s| s.to_string()));
+        v.extend(["--out".into(), o.into()]);
+        v
+    };
+    let scene = d.join("s.toml");
+    std::fs::write(&scene, "albedo = 0.5\n[image]\nresolution = 4\n").unwrap();
+    let s = scene.to_str().unwrap().to_string();
+    let cases: Vec<(Vec<String>, &str)> = vec![
+        (
+            ["profile", "--albedo", "2"].map(String::from).to_vec(),
+            "--albedo",
+        ),
+        (
+            ["simulate", "profile", "--albedo", "2", "--out", o]
+                .map(String::from)
+                .to_vec(),
+            "--albedo",
+        ),
+        (sim(&["--eta", "0.5"]), "--eta"),
+        (sim(&["--g", "1"]), "--g"),
+        (sim(&["--density", "0"]), "--density"),
+        (sim(&["--thickness", "-1"]), "--thickness"),
+        (sim(&["--source", "laser"]), "--source"),
+        (sim(&["--max-events", "0"]), "--max-events"),
+        (sim(&["--shard", "2/2"]), "--shard"),
+        (
+            ["simulate", "kernels", "--albedos", "0.5,1.2", "--out", o]
+                .map(String::from)
+                .to_vec(),
+            "--albedos",
+        ),
+        (
+            ["simulate", "kernels", "--rel-width", "2", "--out", o]
+                .map(String::from)
+                .to_vec(),
+            "--rel-width",
+        ),
+        (
+            [
+                "kernel",
+                "--d",
+                "1",
+                "--albedo",
+                "0.5",
+                "--vertices",
+                "middle",
+            ]
+            .map(String::from)
+            .to_vec(),
+            "--vertices",
+        ),
+        (
+            ["fit", "density-step", "--albedos", "1.5"]
+                .map(String::from)
+                .to_vec(),
+            "--albedos",
+        ),
+        (
+            vec![
+                "render".into(),
+                s.clone(),
+                "--method".into(),
+                "magic".into(),
+                "--out".into(),
+                d.join("r").to_str().unwrap().into(),
+            ],
+            "--method",
+        ),
+    ];
+    for (args, flag) in &cases {
+        let args: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
+        // A closed set or a range is checked by the command line itself,
+        // which names the flag and the values it takes.
+        let needle = if ["--vertices", "--method"].contains(flag) {
+            format!("for '{flag} <")
+        } else {
+            format!("invalid {flag} = ")
+        };
+        fails(&args, &[&needle], &out);
+        let err = String::from_utf8_lossy(&bin().args(&args).output().unwrap().stderr).into_owned();
+        assert!(!err.contains("Some(") && !err.contains("None"), "{err}");
+    }
+    // From a scene: the scene file and its key, not the flag.
+    for (text, key) in [
+        ("albedo = 0.5\n[medium]\neta = 0.5\n", "medium.eta"),
+        ("albedo = 0.5\nmedium = { g = 1.0 }\n", "medium.g"),
+    ] {
+        let p = d.join("medium.toml");
+        std::fs::write(&p, text).unwrap();
+        let r = d.join("r");
+        let o = bin()
+            .args(["render", p.to_str().unwrap(), "--out", r.to_str().unwrap()])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && !r.exists(), "{err}");
+        assert!(
+            err.contains("medium.toml") && err.contains(key),
+            "{key}: {err}"
+        );
+        assert!(
+            !err.contains("--eta") && !err.contains("--g "),
+            "{key}: {err}"
+        );
+    }
     std::fs::remove_dir_all(&d).unwrap();
 }

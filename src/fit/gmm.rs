@@ -564,7 +564,15 @@ pub fn fit_gmm(
     let mut g = p.gmm().normalized();
     g.components.sort_by(|a, b| a.t.total_cmp(&b.t));
     if !g.is_valid() {
-        return Err(bad(format!("the fit gave an invalid kernel {g:?}")));
+        let parts: Vec<String> = g
+            .components
+            .iter()
+            .map(|c| format!("w {} t {} s {} σ {}", c.weight, c.t, c.s, c.sigma))
+            .collect();
+        return Err(bad(format!(
+            "the fit gave an invalid kernel ({})",
+            parts.join("; ")
+        )));
     }
     Ok((g, rep))
 }

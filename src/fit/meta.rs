@@ -493,7 +493,7 @@ pub fn fit_metamodel(
     // inside LM is single-threaded).
     let fit_class = |class: VertexClass| {
         let cs = cells(doc, class);
-        let what = format!("meta-model ({class:?} vertices)");
+        let what = format!("meta-model ({} vertices)", class.name());
         fit_meta_with(&cs, k, degree, &what, Some(&task)).map(|r| (class, cs, r))
     };
     let (a, l) = rayon::join(

@@ -399,26 +399,34 @@ impl KernelConfig {
 
     pub fn validate(&self) -> Result<()> {
         if self.albedos.is_empty() {
-            return Err(Error::param("--albedos", "(none)", "at least one albedo"));
+            return Err(Error::param("albedos", "(none)", "at least one albedo"));
         }
         for a in &self.albedos {
-            self.medium(*a)?;
+            // An albedo out of range is one of `albedos`.
+            self.medium(*a).map_err(|e| match e {
+                Error::Param {
+                    name: "albedo",
+                    value,
+                    allowed,
+                } => Error::Param {
+                    name: "albedos",
+                    value,
+                    allowed,
+                },
+                e => e,
+            })?;
         }
         if self.distances.is_empty() {
-            return Err(Error::param(
-                "--distances",
-                "(none)",
-                "at least one distance",
-            ));
+            return Err(Error::param("distances", "(none)", "at least one distance"));
         }
         if !(self.rel_width > 0.0 && self.rel_width < 1.0) {
-            return Err(Error::param("--rel-width", self.rel_width, "in (0, 1)"));
+            return Err(Error::param("rel_width", self.rel_width, "in (0, 1)"));
         }
         let mut d = self.distances.clone();
         if d.iter().any(|x| !(*x > 0.0 && x.is_finite())) {
             return Err(Error::param(
-                "--distances",
-                format!("{:?}", self.distances),
+                "distances",
+                list(&self.distances),
                 "finite and > 0",
             ));
         }
@@ -427,16 +435,16 @@ impl KernelConfig {
             .any(|p| p[0] * (1.0 + self.rel_width) > p[1] * (1.0 - self.rel_width))
         {
             return Err(Error::param(
-                "--distances",
-                format!("{:?}", self.distances),
-                "bins d(1 ± rel-width) that do not overlap",
+                "distances",
+                list(&self.distances),
+                "bins d(1 ± rel_width) that do not overlap",
             ));
         }
         if self.paths == 0 {
-            return Err(Error::param("--paths", 0, ">= 1"));
+            return Err(Error::param("paths", 0, ">= 1"));
         }
         if self.max_events == 0 {
-            return Err(Error::param("--max-events", 0, ">= 1"));
+            return Err(Error::param("max_events", 0, ">= 1"));
         }
         if self.grid.nu == 0
             || self.grid.nv == 0
@@ -445,7 +453,10 @@ impl KernelConfig {
         {
             return Err(Error::param(
                 "grid",
-                format!("{:?}", self.grid),
+                format!(
+                    "nu {}, nv {}, extent {}",
+                    self.grid.nu, self.grid.nv, self.grid.extent
+                ),
                 "nu, nv >= 1, extent > 0",
             ));
         }
@@ -654,7 +665,6 @@ impl KernelDoc {
 impl crate::doc::Document for KernelDoc {
     const FORMAT: &'static str = KERNEL_FORMAT;
     const VERSION: u32 = KERNEL_VERSION;
-    const WHAT: &'static str = "kernel tally";
 
     fn validate(&self, path: &std::path::Path) -> crate::Result<()> {
         let doc = self;
@@ -678,6 +688,14 @@ impl crate::doc::Document for KernelDoc {
         }
         Ok(())
     }
+}
+
+/// `0.1,0.25,0.5`: a list as the command line takes it.
+fn list(v: &[f64]) -> String {
+    v.iter()
+        .map(|x| x.to_string())
+        .collect::<Vec<_>>()
+        .join(",")
 }
 
 /// Merges shard documents into one (see [`super::profile::merge`]).

@@ -25,19 +25,19 @@ impl Medium {
     /// Validates every parameter against its domain.
     pub fn new(alpha: f64, g: f64, eta: f64, rho: f64, thickness: Option<f64>) -> Result<Self> {
         if !(0.0..=1.0).contains(&alpha) {
-            return Err(Error::param("--albedo", alpha, "in [0, 1]"));
+            return Err(Error::param("albedo", alpha, "in [0, 1]"));
         }
         if g.is_nan() || g.abs() >= 1.0 {
-            return Err(Error::param("--g", g, "in (-1, 1)"));
+            return Err(Error::param("g", g, "in (-1, 1)"));
         }
         if !(1.0..=3.0).contains(&eta) {
-            return Err(Error::param("--eta", eta, "in [1, 3]"));
+            return Err(Error::param("eta", eta, "in [1, 3]"));
         }
         if !(rho > 0.0 && rho.is_finite()) {
-            return Err(Error::param("--density", rho, "finite and > 0"));
+            return Err(Error::param("density", rho, "finite and > 0"));
         }
         if let Some(l) = thickness.filter(|l| !(*l > 0.0 && l.is_finite())) {
-            return Err(Error::param("--thickness", l, "finite and > 0"));
+            return Err(Error::param("thickness", l, "finite and > 0"));
         }
         Ok(Medium {
             alpha,
@@ -84,7 +84,7 @@ impl Source {
         let radius = |r: &str| -> Result<f64> {
             match r.parse::<f64>() {
                 Ok(v) if v > 0.0 && v.is_finite() => Ok(v),
-                _ => Err(Error::param("--source", s, ALLOWED)),
+                _ => Err(Error::param("source", s, ALLOWED)),
             }
         };
         match s.split_once(':') {
@@ -92,7 +92,7 @@ impl Source {
             None if s == "diffuse" => Ok(Source::Diffuse { radius: 0.0 }),
             Some(("collimated", r)) => Ok(Source::Collimated { radius: radius(r)? }),
             Some(("diffuse", r)) => Ok(Source::Diffuse { radius: radius(r)? }),
-            _ => Err(Error::param("--source", s, ALLOWED)),
+            _ => Err(Error::param("source", s, ALLOWED)),
         }
     }
 

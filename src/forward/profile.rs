@@ -53,16 +53,19 @@ impl ProfileConfig {
             self.medium.thickness,
         )?;
         if self.paths == 0 {
-            return Err(Error::param("--paths", 0, ">= 1"));
+            return Err(Error::param("paths", 0, ">= 1"));
         }
         if self.max_events == 0 {
-            return Err(Error::param("--max-events", 0, ">= 1"));
+            return Err(Error::param("max_events", 0, ">= 1"));
         }
         let b = &self.bins;
         if !(b.r_min > 0.0 && b.r_max > b.r_min && b.r_max.is_finite() && b.per_decade > 0) {
             return Err(Error::param(
                 "bins",
-                format!("{b:?}"),
+                format!(
+                    "r_min {}, r_max {}, per_decade {}",
+                    b.r_min, b.r_max, b.per_decade
+                ),
                 "0 < r_min < r_max, per_decade > 0",
             ));
         }
@@ -72,7 +75,10 @@ impl ProfileConfig {
         if (rings - rings.round()).abs() > 1e-6 * rings.max(1.0) {
             return Err(Error::param(
                 "bins",
-                format!("{b:?}"),
+                format!(
+                    "r_min {}, r_max {}, per_decade {}",
+                    b.r_min, b.r_max, b.per_decade
+                ),
                 "r_max/r_min = 10^(k/per_decade) for a whole number k of rings",
             ));
         }
@@ -244,7 +250,6 @@ impl ProfileDoc {
 impl crate::doc::Document for ProfileDoc {
     const FORMAT: &'static str = PROFILE_FORMAT;
     const VERSION: u32 = PROFILE_VERSION;
-    const WHAT: &'static str = "radial profile";
 
     fn validate(&self, path: &std::path::Path) -> crate::Result<()> {
         let doc = self;

@@ -51,10 +51,10 @@ impl Shard {
         const ALLOWED: &str = "k/N with integers 0 <= k < N";
         let (k, n) = s
             .split_once('/')
-            .ok_or_else(|| Error::param("--shard", s, ALLOWED))?;
+            .ok_or_else(|| Error::param("shard", s, ALLOWED))?;
         match (k.trim().parse::<u64>(), n.trim().parse::<u64>()) {
             (Ok(index), Ok(count)) if index < count => Ok(Shard { index, count }),
-            _ => Err(Error::param("--shard", s, ALLOWED)),
+            _ => Err(Error::param("shard", s, ALLOWED)),
         }
     }
 }

@@ -46,11 +46,7 @@ pub fn rel_error(m: &Image, t: &Image) -> f64 {
 /// Every budget of the curves must be ≥ 1 (checked before any work).
 fn check_budgets(truth_paths: u64, spps: &[u32], paths: &[u64]) -> Result<()> {
     if spps.contains(&0) || paths.contains(&0) || truth_paths == 0 {
-        return Err(Error::param(
-            "--spp-list/--paths-list/--truth-paths",
-            "0",
-            "budgets >= 1",
-        ));
+        return Err(Error::param("budgets", "0", "budgets >= 1"));
     }
     Ok(())
 }

@@ -154,6 +154,12 @@ pub struct ReferenceDoc {
     pub provenance: Provenance,
 }
 
+/// Chunk ranges as `0..4, 8..12`.
+fn chunk_list(chunks: &[(u64, u64)]) -> String {
+    let parts: Vec<String> = chunks.iter().map(|(a, b)| format!("{a}..{b}")).collect();
+    parts.join(", ")
+}
+
 impl ReferenceDoc {
     /// Reads a reference tally document ([`crate::jobs::store::load`]).
     pub fn load(path: &Path) -> Result<Self> {
@@ -164,7 +170,6 @@ impl ReferenceDoc {
 impl crate::doc::Document for ReferenceDoc {
     const FORMAT: &'static str = REFERENCE_FORMAT;
     const VERSION: u32 = REFERENCE_VERSION;
-    const WHAT: &'static str = "reference tally";
 
     /// Checks that the tally is whole: its shape against its key
     /// (resolution, channels), and its path count against the chunks it
@@ -196,8 +201,9 @@ impl crate::doc::Document for ReferenceDoc {
                 path,
                 "tally.paths",
                 format!(
-                    "{} paths, but its chunks {:?} hold {claimed}",
-                    t.paths, doc.chunks
+                    "{} paths, but its chunks {} hold {claimed}",
+                    t.paths,
+                    chunk_list(&doc.chunks)
                 ),
             ));
         }
@@ -372,8 +378,12 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                 path,
                 "incidence",
                 format!(
-                    "'{}', but the scene's {:?} light needs a basis fitted to '{want}' profiles",
-                    model.incidence, scene.light
+                    "'{}', but the scene's {} light needs a basis fitted to '{want}' profiles",
+                    model.incidence,
+                    match scene.light {
+                        LightKind::Collimated => "collimated",
+                        LightKind::Diffuse => "diffuse",
+                    }
                 ),
             ));
         }
@@ -443,7 +453,7 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
     let tallies = opts.reference_tallies.len();
     if tallies > 0 && tallies != all_passes.len() {
         return Err(Error::param(
-            "--reference-tally",
+            "reference_tallies",
             format!("{tallies} files for {} passes", all_passes.len()),
             "one tally per pass, in the scene's order (its density sweep)",
         ));
@@ -491,9 +501,10 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                                     path,
                                     "chunks",
                                     format!(
-                                        "covers chunks {:?} of 0..{}: merge every shard \
+                                        "covers chunks {} of 0..{}: merge every shard \
                                          first (`svkernel merge`)",
-                                        doc.chunks, all.1
+                                        chunk_list(&doc.chunks),
+                                        all.1
                                     ),
                                 ));
                             }
@@ -511,7 +522,7 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                                     )
                                 });
                                 return Err(Error::param(
-                                    "--shard",
+                                    "shard",
                                     s,
                                     "a shard that holds chunks: at most as many shards \
                                      as chunks",

@@ -23,7 +23,9 @@
 //! | `density_sweep` | list of floats | none | 1 | render once per constant density (instead of `density`) |
 //!
 //! A **map** is one of (a TOML table):
-//! * `{ constant = 0.8 }`, or `{ rgb = [0.8, 0.5, 0.3] }`;
+//! * `{ constant = 0.8 }`, or `{ rgb = [0.8, 0.5, 0.3] }`; the shorthands
+//!   `albedo = 0.8` and `albedo = [0.8, 0.5, 0.3]` mean the same (a number:
+//!   a constant; a list of three numbers: `rgb`), for any map;
 //! * `{ pattern = "stripes", values = [a, b], width = w, angle = deg }`
 //!   (stripes of width w MFP across the direction `angle` (degrees from +x):
 //!   stripe k = ⌊u/w⌋ with u = x cos θ + y sin θ holds a for even k, b for odd),
@@ -34,12 +36,13 @@
 //!   seed = n }` (thin lines and dots at three scales); for RGB, `values` is a
 //!   list of three-element lists (one per value);
 //! * `{ channels = [map, map, map] }` — R, G, B from three grey maps;
-//! * `{ file = "path.npy" }` — an `(ny, nx)` or `(ny, nx, 3)` float64 array
-//!   (row 0 is +y, column 0 is −x), relative to the scene file;
+//! * `{ file = "path.npy" }` — an `(ny, nx)` or `(ny, nx, 3)` float64 or
+//!   float32 array (row 0 is +y, column 0 is −x), relative to the scene file;
 //!   `{ file = "path.exr" }` — the first layer's R, G, B (or Y, or its only
 //!   channel), linear; `{ file = "path.png", transfer = "srgb" | "linear" }`
-//!   — 8- or 16-bit grey or RGB (alpha ignored), values v/(2^bits − 1), the
-//!   transfer stated explicitly (`srgb` decodes IEC 61966-2-1 to linear).
+//!   — 8- or 16-bit grey or RGB, values v/(2^bits − 1), the transfer stated
+//!   explicitly in any letter case (`srgb` decodes IEC 61966-2-1 to linear);
+//!   a PNG with an alpha channel is refused (flatten it first).
 //!   Image row 0 is +y, column 0 is −x, one pixel per texel.
 //!
 //! A key that the map's kind does not read (e.g. `width` on a checker) is
@@ -57,6 +60,7 @@
 
 use crate::error::{Error, Result};
 use crate::forward::maps::TexelMap;
+use crate::forward::medium::Medium;
 use crate::forward::rng::PathRng;
 use crate::render::scene::{LightKind, Observable, Scene};
 use crate::render::svbssrdf::Method;
@@ -155,9 +159,11 @@ impl Default for RawImage {
     }
 }
 
-/// A map as written in the scene (see the module docs).
-#[derive(Clone, Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
+/// A map as written in the scene (see the module docs): a table, or the
+/// shorthand of a number (a constant) or of three numbers (`rgb`); see the
+/// `Deserialize` impl below.
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields, remote = "Self")]
 struct RawMap {
     constant: Option<f64>,
     rgb: Option<[f64; 3]>,
@@ -174,6 +180,63 @@ struct RawMap {
     transfer: Option<String>,
     channels: Option<Vec<RawMap>>,
     size: Option<[usize; 2]>,
+}
+
+impl<'de> Deserialize<'de> for RawMap {
+    /// A table as derived (`remote = "Self"`); `0.8` as `{ constant = 0.8 }`,
+    /// `[r, g, b]` as `{ rgb = [r, g, b] }`.
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        use serde::de::{self, MapAccess, SeqAccess, Visitor};
+        struct Shorthand;
+        impl<'de> Visitor<'de> for Shorthand {
+            type Value = RawMap;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str(
+                    "a map: a number (a constant), a list [r, g, b] or a table \
+                     such as { pattern = \"stripes\", values = [a, b] }",
+                )
+            }
+            fn visit_f64<E: de::Error>(self, v: f64) -> std::result::Result<RawMap, E> {
+                Ok(RawMap {
+                    constant: Some(v),
+                    ..RawMap::default()
+                })
+            }
+            fn visit_i64<E: de::Error>(self, v: i64) -> std::result::Result<RawMap, E> {
+                self.visit_f64(v as f64)
+            }
+            fn visit_u64<E: de::Error>(self, v: u64) -> std::result::Result<RawMap, E> {
+                self.visit_f64(v as f64)
+            }
+            fn visit_seq<A: SeqAccess<'de>>(
+                self,
+                mut seq: A,
+            ) -> std::result::Result<RawMap, A::Error> {
+                const RGB: &str = "three numbers [r, g, b]";
+                let mut rgb = [0.0; 3];
+                for (i, c) in rgb.iter_mut().enumerate() {
+                    *c = seq
+                        .next_element()?
+                        .ok_or_else(|| de::Error::invalid_length(i, &RGB))?;
+                }
+                let mut n = 3;
+                while seq.next_element::<de::IgnoredAny>()?.is_some() {
+                    n += 1;
+                }
+                if n != 3 {
+                    return Err(de::Error::invalid_length(n, &RGB));
+                }
+                Ok(RawMap {
+                    rgb: Some(rgb),
+                    ..RawMap::default()
+                })
+            }
+            fn visit_map<A: MapAccess<'de>>(self, map: A) -> std::result::Result<RawMap, A::Error> {
+                RawMap::deserialize(de::value::MapAccessDeserializer::new(map))
+            }
+        }
+        d.deserialize_any(Shorthand)
+    }
 }
 
 impl Scene {
@@ -219,13 +282,8 @@ impl Scene {
             }
         };
         let m = &raw.medium;
-        in_range(
-            "medium.eta",
-            m.eta,
-            (1.0..=3.0).contains(&m.eta),
-            "in [1, 3]",
-        )?;
-        in_range("medium.g", m.g, m.g.abs() < 1.0, "in (-1, 1)")?;
+        // The medium's domain is the library's; its errors name the scene key.
+        Medium::new(0.5, m.g, m.eta, 1.0, None).map_err(|e| scene_key(path, e))?;
         in_range("texel", raw.texel, raw.texel > 0.0, "> 0")?;
         in_range(
             "light.radius",
@@ -388,6 +446,26 @@ impl Scene {
     }
 }
 
+/// A library error about a parameter (`eta`) as the scene file's key that
+/// set it (`medium.eta`); other errors as they are.
+fn scene_key(path: &Path, e: Error) -> Error {
+    match e {
+        Error::Param {
+            name,
+            value,
+            allowed,
+        } => {
+            let key = match name {
+                "eta" => "medium.eta",
+                "g" => "medium.g",
+                other => other,
+            };
+            Error::format(path, key, format!("{value} must be {allowed}"))
+        }
+        e => e,
+    }
+}
+
 /// "value V at texel (row i, column j)" of the `k`-th value of `m`.
 fn texel_value(m: &TexelMap, k: usize) -> String {
     format!(
@@ -546,19 +624,33 @@ fn build_map(
             .extension()
             .map(|e| e.to_string_lossy().to_lowercase())
             .unwrap_or_default();
-        let transfer = raw.transfer.as_deref();
+        // Any letter case: "sRGB", "Linear".
+        let lower = raw.transfer.as_ref().map(|t| t.to_ascii_lowercase());
+        let transfer = lower.as_deref();
         match (ext.as_str(), transfer) {
             ("png", Some("srgb" | "linear")) | ("npy" | "exr", None | Some("linear")) => {}
-            ("png", t) => {
+            ("png", None) => {
                 return Err(bad(
                     ".transfer",
-                    format!("{t:?}: a PNG map needs transfer = \"srgb\" or \"linear\""),
+                    "missing: a PNG map needs transfer = \"srgb\" or \"linear\"".into(),
                 ));
             }
-            (_, Some(t)) => {
+            ("png", Some(_)) => {
                 return Err(bad(
                     ".transfer",
-                    format!("'{t}': .npy and .exr maps hold linear values"),
+                    format!(
+                        "'{}': a PNG map needs transfer = \"srgb\" or \"linear\"",
+                        raw.transfer.as_deref().unwrap_or_default()
+                    ),
+                ));
+            }
+            (_, Some(_)) => {
+                return Err(bad(
+                    ".transfer",
+                    format!(
+                        "'{}': .npy and .exr maps hold linear values",
+                        raw.transfer.as_deref().unwrap_or_default()
+                    ),
                 ));
             }
             _ => {}
@@ -735,9 +827,11 @@ fn load_exr(file: &Path, texel: f64) -> Result<Vec<TexelMap>> {
         .collect()
 }
 
-/// Loads an 8- or 16-bit PNG (grey or RGB, alpha ignored) as 1 or 3 maps
-/// with values v/(2^bits − 1), decoded from sRGB to linear if `srgb`
-/// (IEC 61966-2-1); row 0 of the image is +y.
+/// Loads an 8- or 16-bit PNG (grey or RGB) as 1 or 3 maps with values
+/// v/(2^bits − 1), decoded from sRGB to linear if `srgb` (IEC 61966-2-1);
+/// row 0 of the image is +y. An alpha channel (or a tRNS transparency,
+/// which the decoder expands to one) is refused: what would it mean for an
+/// albedo or a density?
 fn load_png(file: &Path, texel: f64, srgb: bool) -> Result<Vec<TexelMap>> {
     let bad = |e: &dyn std::fmt::Display| Error::format(file, "(png)", e.to_string());
     let f = std::fs::File::open(file).map_err(|e| Error::io(file, e))?;
@@ -747,16 +841,21 @@ fn load_png(file: &Path, texel: f64, srgb: bool) -> Result<Vec<TexelMap>> {
     let mut buf = vec![0; reader.output_buffer_size()];
     let info = reader.next_frame(&mut buf).map_err(|e| bad(&e))?;
     let (nx, ny) = (info.width as usize, info.height as usize);
-    let (colours, alpha) = match info.color_type {
-        png::ColorType::Grayscale => (1, 0),
-        png::ColorType::GrayscaleAlpha => (1, 1),
-        png::ColorType::Rgb => (3, 0),
-        png::ColorType::Rgba => (3, 1),
+    let colours = match info.color_type {
+        png::ColorType::Grayscale => 1,
+        png::ColorType::Rgb => 3,
+        png::ColorType::GrayscaleAlpha | png::ColorType::Rgba => {
+            return Err(Error::format(
+                file,
+                "(png)",
+                "has an alpha channel; svkernel reads grey or RGB maps: flatten the image first",
+            ));
+        }
         png::ColorType::Indexed => return Err(bad(&"indexed colour left unexpanded")),
     };
     let wide = info.bit_depth == png::BitDepth::Sixteen;
     let max = if wide { 65535.0 } else { 255.0 };
-    let stride = colours + alpha;
+    let stride = colours;
     let sample = |k: usize| -> f64 {
         let v = if wide {
             u16::from_be_bytes([buf[2 * k], buf[2 * k + 1]]) as f64
@@ -781,21 +880,40 @@ fn load_png(file: &Path, texel: f64, srgb: bool) -> Result<Vec<TexelMap>> {
         .collect()
 }
 
-/// Loads an `(ny, nx)` or `(ny, nx, 3)` float64 `.npy` as 1 or 3 channels.
+/// Loads an `(ny, nx)` or `(ny, nx, 3)` float64 or float32 `.npy` as 1 or 3
+/// channels (float32 values widened exactly).
 fn load_npy(file: &Path, texel: f64) -> Result<Vec<TexelMap>> {
     use ndarray::ArrayD;
-    use ndarray_npy::ReadNpyExt;
-    let f = std::fs::File::open(file).map_err(|e| Error::io(file, e))?;
-    let a = ArrayD::<f64>::read_npy(f).map_err(|e| Error::format(file, "(npy)", e))?;
+    use ndarray_npy::{ReadNpyError, ReadNpyExt};
+    let open = || std::fs::File::open(file).map_err(|e| Error::io(file, e));
+    let bad = |e: ReadNpyError| Error::format(file, "(npy)", e);
+    // The dtype is checked on the header, before any data is read: a float32
+    // file costs one extra header parse.
+    let a = match ArrayD::<f64>::read_npy(open()?) {
+        Ok(a) => a,
+        Err(ReadNpyError::WrongDescriptor(_)) => match ArrayD::<f32>::read_npy(open()?) {
+            Ok(a) => a.mapv(f64::from),
+            Err(ReadNpyError::WrongDescriptor(d)) => {
+                return Err(Error::format(
+                    file,
+                    "(npy)",
+                    format!("dtype {d}: svkernel reads float64 ('<f8') or float32 ('<f4') arrays"),
+                ));
+            }
+            Err(e) => return Err(bad(e)),
+        },
+        Err(e) => return Err(bad(e)),
+    };
     let shape = a.shape().to_vec();
     let (ny, nx, nc) = match shape[..] {
         [ny, nx] => (ny, nx, 1),
         [ny, nx, 3] => (ny, nx, 3),
         _ => {
+            let dims: Vec<String> = shape.iter().map(|n| n.to_string()).collect();
             return Err(Error::format(
                 file,
                 "(shape)",
-                format!("{shape:?}: expected (ny, nx) or (ny, nx, 3)"),
+                format!("({}): expected (ny, nx) or (ny, nx, 3)", dims.join(", ")),
             ));
         }
     };

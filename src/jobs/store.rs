@@ -93,6 +93,12 @@ pub fn read_json<T: DeserializeOwned>(path: &Path) -> Result<T> {
     serde_json::from_str(&text).map_err(|e| crate::doc::json_error(path, e))
 }
 
+/// The `format` tag of the JSON document at `path` ([`crate::doc::format_of`]).
+pub fn read_format(path: &Path) -> Result<Option<String>> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    crate::doc::format_of(&text, path)
+}
+
 /// Loads a versioned document ([`crate::doc::from_json`]): a file of
 /// another kind is named by its `format` tag; errors name the file.
 pub fn load<T: Document>(path: &Path) -> Result<T> {

@@ -324,7 +324,6 @@ impl BasisModel {
 impl crate::doc::Document for BasisModel {
     const FORMAT: &'static str = BASIS_FORMAT;
     const VERSION: u32 = BASIS_VERSION;
-    const WHAT: &'static str = "basis BSSRDF model";
 
     fn validate(&self, path: &std::path::Path) -> crate::Result<()> {
         let m = self;

@@ -393,7 +393,6 @@ impl MetaModelFile {
 impl crate::doc::Document for MetaModelFile {
     const FORMAT: &'static str = META_FORMAT;
     const VERSION: u32 = META_VERSION;
-    const WHAT: &'static str = "kernel meta-model";
 
     fn validate(&self, path: &std::path::Path) -> crate::Result<()> {
         let f = self;

@@ -78,7 +78,7 @@ impl Sampling {
             "importance" => Ok(Sampling::Importance),
             "mis" => Ok(Sampling::Mis),
             _ => Err(crate::Error::param(
-                "--sampling",
+                "sampling",
                 s,
                 "uniform, importance or mis",
             )),
@@ -183,7 +183,7 @@ impl Settings {
         let least = if self.sampling == Sampling::Mis { 4 } else { 2 };
         if self.spp < least {
             return Err(crate::Error::param(
-                "--spp (or the scene's samples)",
+                "spp",
                 self.spp,
                 ">= 2 per sampling strategy (>= 4 with mis): a standard error needs two samples",
             ));

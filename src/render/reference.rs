@@ -237,7 +237,7 @@ impl Reference {
             },
         };
         if paths == 0 {
-            return Err(Error::param("--paths", 0, ">= 1"));
+            return Err(Error::param("paths", 0, ">= 1"));
         }
         let tracking = Tracking::for_density(&density);
         Ok(Reference {

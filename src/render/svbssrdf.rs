@@ -104,7 +104,7 @@ impl Method {
             .find(|m| m.name() == s)
             .ok_or_else(|| {
                 Error::param(
-                    "--method",
+                    "method",
                     s,
                     "point, factorized, line, ellipse, manual, learned or reference",
                 )
@@ -476,7 +476,7 @@ impl SvBssrdf {
     ) -> Result<Self> {
         if method == Method::Learned && meta.is_none() {
             return Err(Error::param(
-                "--model",
+                "meta_model",
                 "(none)",
                 "a meta-model file for method learned",
             ));
