@@ -534,7 +534,7 @@ pub fn walk_grid<A: AlbedoField>(
 }
 
 /// Adds one finished path to the tally (`bins`: the lookup of the tally's
-/// [`RadialBins`]).
+/// [`RadialBins`](crate::forward::tally::RadialBins)).
 #[inline]
 pub fn record(tally: &mut ProfileTally, bins: &BinLookup, fate: Fate, events: u32) {
     tally.events += events as u64;
