@@ -1275,6 +1275,15 @@ fn param_as(e: svkernel::Error, from: &str, to: &'static str) -> svkernel::Error
 }
 
 fn main() -> std::process::ExitCode {
+    // A closed stdout (`svkernel kernel … | head -1`) ends the program
+    // quietly, as for other Unix tools, instead of a panic in `println!`;
+    // every result file is already complete when its summary is printed.
+    #[cfg(unix)]
+    // SAFETY: restoring the default action of a signal before any thread
+    // is started.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Simulate(Simulate::Profile(a)) => simulate_profile(a),

@@ -757,3 +757,23 @@ fn missing_albedo_range_is_simulated_once_and_cached() {
     assert!(!d.join("d/render.json").exists());
     std::fs::remove_dir_all(&d).unwrap();
 }
+
+/// A closed stdout (`svkernel profile … | head -1`) ends the program
+/// quietly: no panic message on stderr.
+#[cfg(unix)]
+#[test]
+fn a_closed_stdout_is_no_panic() {
+    let mut child = bin()
+        .args(["profile", "--albedo", "0.5", "--radii", "0.1,1,10"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let o = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !err.contains("panicked") && !err.contains("Broken pipe"),
+        "{err}"
+    );
+}
