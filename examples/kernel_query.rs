@@ -22,14 +22,8 @@ fn main() -> svkernel::Result<()> {
                 ""
             }
         );
-        for (name, g) in [("learned", &q.gmm), ("manual ", &manual_kernel(d))] {
-            let parts: Vec<String> = g
-                .components
-                .iter()
-                .map(|c| format!("w {:.3} t {:+.3} σ {:.3}", c.weight, c.t, c.sigma))
-                .collect();
-            println!("  {name}: {}", parts.join(" | "));
-        }
+        println!("  learned: {}", q.gmm);
+        println!("  manual : {}", manual_kernel(d));
         let mean_t: f64 = q.gmm.components.iter().map(|c| c.weight * c.t).sum();
         println!("  learned mean t = {mean_t:+.3} MFP (x_e is at t = {d})");
     }

@@ -708,14 +708,8 @@ fn demo(out: PathBuf, paths: u64, models: ModelArgs) -> Result<()> {
     println!(
         "aggregation kernel at d = 1 MFP, α = 0.9 (all vertices; t from x_i toward x_e, MFP):"
     );
-    for (name, g) in [("learned", &r.learned), ("manual ", &r.manual)] {
-        let parts: Vec<String> = g
-            .components
-            .iter()
-            .map(|c| format!("w {:.3} t {:+.3} σ {:.3}", c.weight, c.t, c.sigma))
-            .collect();
-        println!("  {name}: {}", parts.join(" | "));
-    }
+    println!("  learned: {}", r.learned);
+    println!("  manual : {}", r.manual);
     println!("wrote {} and {}", r.json.display(), r.plot.display());
     println!(
         "comparing {} (64 spp importance sampling, reference 4e6 paths, 64² pixels, error-vs-time curves):",

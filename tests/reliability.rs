@@ -3,21 +3,9 @@
 //! panic, and no output left behind.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
-/// The binary, with the built-in models (the variables that override them
-/// removed) and a cache of this test run's own.
-fn bin() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_svkernel"));
-    for v in ["SVKERNEL_BASIS", "SVKERNEL_BASIS_DIFFUSE", "SVKERNEL_MODEL"] {
-        c.env_remove(v);
-    }
-    c.env(
-        "SVKERNEL_CACHE",
-        std::env::temp_dir().join(format!("svk-cache-{}", std::process::id())),
-    );
-    c
-}
+mod common;
+use common::bin;
 
 fn tmpdir(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("svk-reliability-{name}-{}", std::process::id()));

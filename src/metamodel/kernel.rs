@@ -130,6 +130,20 @@ impl Component {
     }
 }
 
+/// `w 0.335 t +0.052 σ 0.079 | w …`: each component's weight, position
+/// along the pair axis and width (MFP), on one line.
+impl std::fmt::Display for Gmm {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        for (k, c) in self.components.iter().enumerate() {
+            if k > 0 {
+                f.write_str(" | ")?;
+            }
+            write!(f, "w {:.3} t {:+.3} σ {:.3}", c.weight, c.t, c.sigma)?;
+        }
+        Ok(())
+    }
+}
+
 impl Gmm {
     /// K(t, s) (1/MFP², t and s in MFP).
     pub fn density(&self, t: f64, s: f64) -> f64 {
