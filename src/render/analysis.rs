@@ -30,13 +30,70 @@
 
 use super::scene::{LightKind, Scene};
 use crate::forward::maps::TexelMap;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
+
+/// The effects the analysis (and the compare report) considers, written as
+/// their short names ("rgb channels", "density pyramid", …).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum EffectKind {
+    #[serde(rename = "rgb channels")]
+    RgbChannels,
+    #[serde(rename = "density pyramid")]
+    DensityPyramid,
+    #[serde(rename = "albedo aggregation")]
+    AlbedoAggregation,
+    #[serde(rename = "collimated-incidence profile")]
+    CollimatedProfile,
+    #[serde(rename = "diffuse-incidence profile")]
+    DiffuseProfile,
+    /// Simulating and fitting the meta-model where the scene's albedos
+    /// leave its trained range ([`super::extend`]).
+    #[serde(rename = "kernel simulation (missing albedo range)")]
+    KernelSimulation,
+}
+
+impl EffectKind {
+    /// The short name.
+    pub fn name(self) -> &'static str {
+        match self {
+            EffectKind::RgbChannels => "rgb channels",
+            EffectKind::DensityPyramid => "density pyramid",
+            EffectKind::AlbedoAggregation => "albedo aggregation",
+            EffectKind::CollimatedProfile => "collimated-incidence profile",
+            EffectKind::DiffuseProfile => "diffuse-incidence profile",
+            EffectKind::KernelSimulation => "kernel simulation (missing albedo range)",
+        }
+    }
+}
+
+impl std::fmt::Display for EffectKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// The incidence a basis profile is fitted to: a collimated light needs
+/// pencil-beam profiles, a diffuse one diffuse-incidence profiles.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Incidence {
+    Pencil,
+    Diffuse,
+}
+
+impl Incidence {
+    pub fn name(self) -> &'static str {
+        match self {
+            Incidence::Pencil => "pencil",
+            Incidence::Diffuse => "diffuse",
+        }
+    }
+}
 
 /// One effect the analysis considered.
-#[derive(Clone, Debug, Serialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct Effect {
-    /// Short name ("rgb channels", "density pyramid", …).
-    pub name: &'static str,
+    pub name: EffectKind,
     /// False: skipped (the scene does not call for it).
     pub needed: bool,
     /// Why, in words.
@@ -44,7 +101,7 @@ pub struct Effect {
 }
 
 /// What the scene needs (module docs).
-#[derive(Clone, Debug, Serialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct Plan {
     /// Render one channel (grey albedo).
     pub grey: bool,
@@ -53,8 +110,8 @@ pub struct Plan {
     /// Albedo and density both constant: every method is the homogeneous
     /// profile.
     pub homogeneous: bool,
-    /// "pencil" (collimated light) or "diffuse".
-    pub incidence: &'static str,
+    /// Pencil (collimated light) or diffuse.
+    pub incidence: Incidence,
     /// Albedo range over all channels and texels.
     pub albedo_range: [f64; 2],
     /// Density range (the sweep's or the map's; 1 without either).
@@ -99,12 +156,12 @@ pub fn analyse(scene: &Scene, skip: bool) -> Plan {
     let corner = scene.half_width * std::f64::consts::SQRT_2;
     let max_optical_distance = density_range[1] * (corner + scene.light_radius);
     let incidence = match scene.light {
-        LightKind::Collimated => "pencil",
-        LightKind::Diffuse => "diffuse",
+        LightKind::Collimated => Incidence::Pencil,
+        LightKind::Diffuse => Incidence::Diffuse,
     };
     let mut effects = vec![
         Effect {
-            name: "rgb channels",
+            name: EffectKind::RgbChannels,
             needed: !grey,
             detail: if scene.albedo.len() == 1 {
                 "the albedo is grey: one channel".into()
@@ -115,7 +172,7 @@ pub fn analyse(scene: &Scene, skip: bool) -> Plan {
             },
         },
         Effect {
-            name: "density pyramid",
+            name: EffectKind::DensityPyramid,
             needed: scene.density.is_some() && constant_density.is_none(),
             detail: match (&scene.density, constant_density) {
                 (Some(_), Some(v)) => {
@@ -129,7 +186,7 @@ pub fn analyse(scene: &Scene, skip: bool) -> Plan {
             },
         },
         Effect {
-            name: "albedo aggregation",
+            name: EffectKind::AlbedoAggregation,
             needed: !homogeneous,
             detail: if homogeneous {
                 "albedo and density are constant: every method is the homogeneous profile, no pyramid"
@@ -141,14 +198,20 @@ pub fn analyse(scene: &Scene, skip: bool) -> Plan {
             },
         },
         Effect {
-            name: "collimated-incidence profile",
-            needed: incidence == "pencil",
-            detail: format!("light is {incidence}: only the {incidence} basis is loaded"),
+            name: EffectKind::CollimatedProfile,
+            needed: incidence == Incidence::Pencil,
+            detail: format!(
+                "light is {0}: only the {0} basis is loaded",
+                incidence.name()
+            ),
         },
         Effect {
-            name: "diffuse-incidence profile",
-            needed: incidence == "diffuse",
-            detail: format!("light is {incidence}: only the {incidence} basis is loaded"),
+            name: EffectKind::DiffuseProfile,
+            needed: incidence == Incidence::Diffuse,
+            detail: format!(
+                "light is {0}: only the {0} basis is loaded",
+                incidence.name()
+            ),
         },
     ];
     if !skip {

@@ -59,7 +59,7 @@ use crate::error::{Error, Result};
 use crate::forward::maps::TexelMap;
 use crate::forward::rng::PathRng;
 use crate::render::svbssrdf::Method;
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
 /// The methods a scene can ask for (design §4's table), by name.
@@ -176,14 +176,16 @@ struct RawMap {
 }
 
 /// The light of a scene.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum LightKind {
     Collimated,
     Diffuse,
 }
 
 /// What the image holds.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum Observable {
     /// Radiant exitance M(x, y) per unit incident irradiance.
     Exitance,
