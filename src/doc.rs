@@ -129,6 +129,22 @@ pub fn to_json<T: Serialize>(doc: &T, compact: bool, origin: &Path) -> Result<Ve
     .map_err(|e| Error::format(origin, "(serialise)", e))
 }
 
+/// `#[serde(with = "crate::doc::nan_as_null")]` on an `f64` field that can
+/// be undefined (a relative error against a black image): JSON has no NaN,
+/// serde_json writes NaN and ±∞ as `null`, and this reads `null` back as
+/// NaN instead of refusing the document.
+pub mod nan_as_null {
+    use serde::{Deserialize, Deserializer, Serializer};
+
+    pub fn serialize<S: Serializer>(v: &f64, s: S) -> std::result::Result<S::Ok, S::Error> {
+        s.serialize_f64(*v)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> std::result::Result<f64, D::Error> {
+        Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -166,5 +182,20 @@ mod tests {
         let e = err(r#"{"format": "svkernel.meta"#);
         assert!(e.contains("truncated"), "{e}");
         assert!(!e.contains("missing field"), "{e}");
+    }
+
+    #[test]
+    fn an_undefined_number_reads_back_as_nan() {
+        #[derive(serde::Serialize, serde::Deserialize)]
+        struct X {
+            #[serde(with = "nan_as_null")]
+            v: f64,
+        }
+        let text = serde_json::to_string(&X { v: f64::NAN }).unwrap();
+        assert_eq!(text, r#"{"v":null}"#);
+        let back: X = serde_json::from_str(&text).unwrap();
+        assert!(back.v.is_nan());
+        let back: X = serde_json::from_str(r#"{"v":0.25}"#).unwrap();
+        assert_eq!(back.v, 0.25);
     }
 }

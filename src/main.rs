@@ -716,8 +716,8 @@ fn demo(out: PathBuf, paths: u64, models: ModelArgs) -> Result<()> {
         svkernel::jobs::demo::DEMO_SCENES.join(", ")
     );
     let scenes = svkernel::jobs::demo::compare_scenes(&out, &models, true)?;
-    for (name, c) in &scenes {
-        print_comparison(name, &c.doc);
+    for (_, c) in &scenes {
+        print!("{}", c.doc);
     }
     println!(
         "wrote {0}/index.html (self-contained report), {0}/index.md, and per scene {0}/<scene>/report.html",
@@ -1006,45 +1006,12 @@ fn compare(a: CompareArgs) -> Result<()> {
         measure_savings: true,
     };
     let c = compare_scene(&scene, &opts, &settings)?;
-    print_comparison(&scene.name, &c.doc);
+    print!("{}", c.doc);
     println!(
         "wrote {0}/report.html (self-contained), {0}/report.md, {0}/compare.json",
         a.out.display()
     );
     Ok(())
-}
-
-/// The terminal summary of one comparison: method table, skipped effects,
-/// error-vs-time speed-ups.
-fn print_comparison(name: &str, doc: &serde_json::Value) {
-    for pass in doc["render"]["passes"].as_array().into_iter().flatten() {
-        println!("scene {name}, pass {}:", pass["tag"].as_str().unwrap_or(""));
-        println!("  {}", method_header());
-        for m in pass["methods"].as_array().into_iter().flatten() {
-            println!("  {}", method_row(m));
-        }
-    }
-    let skipped: Vec<&str> = doc["skipped"]
-        .as_array()
-        .into_iter()
-        .flatten()
-        .filter_map(|v| v.as_str())
-        .collect();
-    println!("  skipped: {}", skipped.join(", "));
-    if let Some(s) = doc["savings"]["saved_s"].as_f64() {
-        println!("  the skips saved {s:.2} s (measured)");
-    }
-    for p in doc["curves"]["speedups"].as_array().into_iter().flatten() {
-        println!(
-            "  {:<11} {:>5} spp {:>7.2} s  error {:>6.2} %  reference needs {:>8.2} s  ({:.1}×)",
-            p["method"].as_str().unwrap_or(""),
-            p["budget"],
-            p["wall_s"].as_f64().unwrap_or(0.0),
-            100.0 * p["rel_rmse"].as_f64().unwrap_or(0.0),
-            p["reference_s"].as_f64().unwrap_or(0.0),
-            p["ratio"].as_f64().unwrap_or(0.0),
-        );
-    }
 }
 
 /// `svkernel experiments`.
@@ -1059,7 +1026,7 @@ fn experiments(a: ExperimentsArgs) -> Result<()> {
         model_args,
         out,
     } = a;
-    use svkernel::jobs::experiments::{Settings, report, run};
+    use svkernel::jobs::experiments::{ExperimentsDoc, Settings, report, run};
     use svkernel::jobs::render::RenderOptions;
     let opts = RenderOptions {
         spp: Some(spp),
@@ -1080,16 +1047,8 @@ fn experiments(a: ExperimentsArgs) -> Result<()> {
         },
         &opts,
     )?;
-    let command = std::env::args().collect::<Vec<_>>().join(" ");
-    let blocks = report(&rows, &command, &out.join("complexity.png"))?;
-    let doc = serde_json::json!({
-        "format": "svkernel.experiments",
-        "version": 1,
-        "spp": spp,
-        "reference_paths": paths,
-        "rows": rows,
-        "provenance": Provenance::current(),
-    });
+    let doc = ExperimentsDoc::new(spp, paths, rows);
+    let blocks = report(&doc, &out.join("complexity.png"))?;
     svkernel::jobs::store::write_json_atomic(&out.join("experiments.json"), &doc)?;
     let html = svkernel::jobs::report::write_report(
         &out,
@@ -1097,44 +1056,12 @@ fn experiments(a: ExperimentsArgs) -> Result<()> {
         "svkernel: the open experiments",
         &blocks,
     )?;
-    print!(
-        "{}",
-        std::fs::read_to_string(out.join("experiments.md"))?
-            .lines()
-            .filter(|l| l.starts_with('|') || l.starts_with('#'))
-            .map(|l| format!("{l}\n"))
-            .collect::<String>()
-    );
+    print!("{doc}");
     println!(
         "wrote {} (self-contained), experiments.md, experiments.json",
         html.display()
     );
     Ok(())
-}
-
-/// Header of the per-method table of `render` and `demo`.
-fn method_header() -> String {
-    format!(
-        "{:<11} {:>9} {:>10} {:>10}",
-        "method", "time [s]", "rel RMSE", "rel bias"
-    )
-}
-
-/// One method of a `render.json` pass: name, time, relative RMSE and bias
-/// against the reference ("—" for the reference itself).
-fn method_row(m: &serde_json::Value) -> String {
-    let f = |k: &str| match m["metrics"][k].as_f64() {
-        None => "—".to_string(),
-        Some(0.0) if k == "rel_rmse" => "< noise".to_string(),
-        Some(v) => format!("{v:.4}"),
-    };
-    format!(
-        "{:<11} {:>9.2} {:>10} {:>10}",
-        m["method"].as_str().unwrap_or(""),
-        m["wall_s"].as_f64().unwrap_or(0.0),
-        f("rel_rmse"),
-        f("rel_bias")
-    )
 }
 
 /// `--checkpoint-every` as a duration (≥ 0 seconds).
@@ -1147,7 +1074,7 @@ fn checkpoint_interval(every: f64) -> Result<Duration> {
 
 /// `svkernel render`.
 fn render(a: RenderArgs) -> Result<()> {
-    use svkernel::jobs::render::{RenderOptions, render_scene, tag_or, write_outputs};
+    use svkernel::jobs::render::{RenderOptions, render_scene, write_outputs};
     use svkernel::render::scene::Scene;
     use svkernel::render::svbssrdf::Variant;
     let mut scene = Scene::find(&a.scene)?;
@@ -1188,19 +1115,7 @@ fn render(a: RenderArgs) -> Result<()> {
     let passes = render_scene(&scene, &opts)?;
     let doc = write_outputs(&scene, &opts, &passes)?;
     println!("scene {} → {}", scene.name, a.out.display());
-    for (pass, pd) in passes
-        .iter()
-        .zip(doc["passes"].as_array().into_iter().flatten())
-    {
-        println!("pass {}:", tag_or(&pass.tag));
-        println!("  {}", method_header());
-        for m in pd["methods"].as_array().into_iter().flatten() {
-            println!("  {}", method_row(m));
-        }
-        if let Some(e) = pass.reference_events_per_s {
-            println!("  reference: {e:.3e} scattering events/s");
-        }
-    }
+    print!("{doc}");
     Ok(())
 }
 

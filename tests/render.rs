@@ -76,7 +76,7 @@ half_width = 2.0
         plan.homogeneous && plan.constant_density == Some(1.5),
         "{plan:?}"
     );
-    let skipped: Vec<&str> = plan.skipped().map(|e| e.name).collect();
+    let skipped: Vec<&str> = plan.skipped().map(|e| e.name.name()).collect();
     assert!(skipped.contains(&"albedo aggregation") && skipped.contains(&"density pyramid"));
     let full = RenderOptions {
         analysis: false,

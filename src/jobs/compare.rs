@@ -12,29 +12,42 @@
 //! the reference's keeps falling, and where it crosses a model's curve is
 //! how long brute force needs to match that model.
 
-use super::render::{RenderOptions, Target, render_scene, write_outputs};
+use super::render::{RenderDoc, RenderOptions, Target, render_scene, write_outputs};
 use super::report::{Block, write_report};
 use crate::error::{Error, Result};
-use crate::render::analysis::{Effect, analyse};
+use crate::provenance::Provenance;
+use crate::render::analysis::{Effect, EffectKind, Plan, analyse};
 use crate::render::estimator::Image;
 use crate::render::scene::Scene;
 use crate::render::svbssrdf::Method;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
 /// One point of a curve: the budget (samples per pixel, or reference
-/// paths), the wall time it took and the error.
-#[derive(Clone, Debug, Serialize)]
+/// paths), the wall time it took (set-up included), the set-up part of it
+/// and the error.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CurvePoint {
     pub budget: u64,
     pub wall_s: f64,
+    /// Set-up (pyramid builds) within `wall_s`; 0 for the reference.
+    #[serde(default)]
+    pub setup_s: f64,
+    #[serde(with = "crate::doc::nan_as_null")]
     pub rel_rmse: f64,
 }
 
-/// Error against time of one method (or the reference).
-#[derive(Clone, Debug, Serialize)]
+impl CurvePoint {
+    /// The render time: `wall_s` less the set-up.
+    pub fn render_s(&self) -> f64 {
+        self.wall_s - self.setup_s
+    }
+}
+
+/// Error against time of one method (or the reference), in budget order.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Curve {
-    pub method: String,
+    pub method: Target,
     pub points: Vec<CurvePoint>,
 }
 
@@ -67,12 +80,12 @@ pub fn error_vs_time(
     // sweep's other passes were rendered and thrown away).
     let mut one_pass = scene.clone();
     one_pass.density_sweep.truncate(1);
-    let first = |o: &RenderOptions| -> Result<Vec<(Target, Image, f64)>> {
+    let first = |o: &RenderOptions| -> Result<Vec<(Target, Image, f64, f64)>> {
         let first_pass = render_scene(&one_pass, o)?.swap_remove(0);
         Ok(first_pass
             .rendered
             .into_iter()
-            .map(|r| (r.target, r.image, r.wall_s))
+            .map(|r| (r.target, r.image, r.wall_s, r.setup_s))
             .collect())
     };
     let mut o = opts.clone();
@@ -81,27 +94,29 @@ pub fn error_vs_time(
     o.seed = opts.seed.wrapping_add(1_000_003);
     o.out = opts.out.join("truth");
     let truth = first(&o)?;
-    let (_, truth_img, truth_s) = &truth[0];
+    let (_, truth_img, truth_s, _) = &truth[0];
 
     let mut curves: Vec<Curve> = Vec::new();
-    let mut push = |name: &str, p: CurvePoint| match curves.iter_mut().find(|c| c.method == name) {
-        Some(c) => c.points.push(p),
-        None => curves.push(Curve {
-            method: name.to_string(),
-            points: vec![p],
-        }),
-    };
+    let mut push =
+        |method: Target, p: CurvePoint| match curves.iter_mut().find(|c| c.method == method) {
+            Some(c) => c.points.push(p),
+            None => curves.push(Curve {
+                method,
+                points: vec![p],
+            }),
+        };
     for &n in paths {
         let mut o = opts.clone();
         o.targets = vec![Target::Reference];
         o.reference_paths = Some(n);
         o.out = opts.out.join(format!("reference_{n}"));
-        for (t, img, s) in first(&o)? {
+        for (t, img, wall_s, setup_s) in first(&o)? {
             push(
-                t.name(),
+                t,
                 CurvePoint {
                     budget: n,
-                    wall_s: s,
+                    wall_s,
+                    setup_s,
                     rel_rmse: rel_error(&img, truth_img),
                 },
             );
@@ -114,16 +129,20 @@ pub fn error_vs_time(
         let mut o = opts.clone();
         o.targets = methods.clone();
         o.spp = Some(spp);
-        for (t, img, s) in first(&o)? {
+        for (t, img, wall_s, setup_s) in first(&o)? {
             push(
-                t.name(),
+                t,
                 CurvePoint {
                     budget: spp as u64,
-                    wall_s: s,
+                    wall_s,
+                    setup_s,
                     rel_rmse: rel_error(&img, truth_img),
                 },
             );
         }
+    }
+    for c in &mut curves {
+        c.points.sort_by_key(|p| p.budget);
     }
     Ok((curves, *truth_s))
 }
@@ -137,10 +156,10 @@ pub fn plot_curves(path: &Path, scene: &str, curves: &[Curve]) -> Result<()> {
         .enumerate()
         .map(|(k, c)| {
             let pts = c.points.iter().map(|p| (p.wall_s, p.rel_rmse)).collect();
-            if c.method == "reference" {
-                Series::dashed(c.method.clone(), pts, k)
+            if c.method == Target::Reference {
+                Series::dashed(c.method.name(), pts, k)
             } else {
-                Series::line(c.method.clone(), pts, k)
+                Series::line(c.method.name(), pts, k)
             }
         })
         .collect();
@@ -187,9 +206,9 @@ pub fn reference_time_for(reference: &Curve, e: f64) -> Option<f64> {
 }
 
 /// How much faster a model is than brute force at the model's own error.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Speedup {
-    pub method: String,
+    pub method: Target,
     /// The model point with the largest ratio: its budget (spp), time and
     /// error.
     pub budget: u64,
@@ -200,17 +219,18 @@ pub struct Speedup {
     /// `reference_s / wall_s`.
     pub ratio: f64,
     /// The model's lowest error over its budgets (its floor, bias-bound).
+    #[serde(with = "crate::doc::nan_as_null")]
     pub floor: f64,
 }
 
 /// Per model curve: the point where it beats brute force by the most.
 pub fn speedups(curves: &[Curve]) -> Vec<Speedup> {
-    let Some(reference) = curves.iter().find(|c| c.method == "reference") else {
+    let Some(reference) = curves.iter().find(|c| c.method == Target::Reference) else {
         return Vec::new();
     };
     curves
         .iter()
-        .filter(|c| c.method != "reference")
+        .filter(|c| c.method != Target::Reference)
         .filter_map(|c| {
             let floor = c
                 .points
@@ -222,7 +242,7 @@ pub fn speedups(curves: &[Curve]) -> Vec<Speedup> {
                 .filter_map(|p| {
                     let t = reference_time_for(reference, p.rel_rmse)?;
                     Some(Speedup {
-                        method: c.method.clone(),
+                        method: c.method,
                         budget: p.budget,
                         wall_s: p.wall_s,
                         rel_rmse: p.rel_rmse,
@@ -247,10 +267,119 @@ pub struct CompareSettings {
     pub measure_savings: bool,
 }
 
+/// The `format` of `compare.json`.
+pub const COMPARE_FORMAT: &str = "svkernel.compare";
+pub const COMPARE_VERSION: u32 = 1;
+
+/// `compare.json`: the scene analysis, what its skips saved, the main
+/// render ([`RenderDoc`]) and the error-vs-time curves.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CompareDoc {
+    /// [`COMPARE_FORMAT`], [`COMPARE_VERSION`].
+    pub format: String,
+    pub version: u32,
+    pub scene: PathBuf,
+    pub scene_name: String,
+    /// The scene analysis, with the meta-model range effect for `learned`.
+    pub analysis: Plan,
+    /// The effects skipped (`analysis.effects` not needed).
+    pub skipped: Vec<EffectKind>,
+    /// What the skips saved, measured (`None`: nothing to measure, or not
+    /// asked).
+    pub savings: Option<Savings>,
+    pub render: RenderDoc,
+    pub curves: CurvesDoc,
+    pub provenance: Provenance,
+}
+
+/// What the scene analysis's skips saved: the same render with the
+/// analysis off.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Savings {
+    /// How it was measured.
+    pub how: String,
+    /// In all, over the targets.
+    pub saved_s: f64,
+    pub targets: Vec<TargetSavings>,
+}
+
+/// [`Savings`] of one target.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TargetSavings {
+    pub method: Target,
+    pub with_skips_s: f64,
+    pub without_skips_s: f64,
+    pub saved_s: f64,
+}
+
+/// The error-vs-time curves of [`CompareDoc`] (empty without them).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CurvesDoc {
+    /// The truth's paths and wall time.
+    pub truth_paths: Option<u64>,
+    pub truth_wall_s: Option<f64>,
+    /// What the error is, in words.
+    pub error: String,
+    pub curves: Vec<Curve>,
+    pub speedups: Vec<Speedup>,
+}
+
+impl CompareDoc {
+    /// Reads `compare.json`, checking its format and version.
+    pub fn load(path: &Path) -> Result<CompareDoc> {
+        crate::jobs::store::load(path)
+    }
+}
+
+impl crate::doc::Document for CompareDoc {
+    const FORMAT: &'static str = COMPARE_FORMAT;
+    const VERSION: u32 = COMPARE_VERSION;
+
+    fn validate(&self, _origin: &Path) -> Result<()> {
+        Ok(())
+    }
+}
+
+/// One line of the speed-up summary.
+impl std::fmt::Display for Speedup {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{:<11} {:>5} spp {:>7.2} s  error {:>6.2} %  reference needs {:>8.2} s  ({:.1}×)",
+            self.method.name(),
+            self.budget,
+            self.wall_s,
+            100.0 * self.rel_rmse,
+            self.reference_s,
+            self.ratio,
+        )
+    }
+}
+
+/// The terminal summary: method table per pass, skipped effects, measured
+/// savings, error-vs-time speed-ups.
+impl std::fmt::Display for CompareDoc {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        for pass in &self.render.passes {
+            writeln!(f, "scene {}, pass {}:", self.scene_name, pass.tag)?;
+            write!(f, "{pass}")?;
+        }
+        let skipped: Vec<&str> = self.skipped.iter().map(|e| e.name()).collect();
+        writeln!(f, "  skipped: {}", skipped.join(", "))?;
+        if let Some(s) = &self.savings {
+            writeln!(f, "  the skips saved {:.2} s (measured)", s.saved_s)?;
+        }
+        for p in &self.curves.speedups {
+            writeln!(f, "  {p}")?;
+        }
+        Ok(())
+    }
+}
+
 /// A finished comparison: the `compare.json` document and the report's
 /// blocks (the demo gathers several into one page).
 pub struct Comparison {
-    pub doc: serde_json::Value,
+    pub doc: CompareDoc,
     pub blocks: Vec<Block>,
 }
 
@@ -266,7 +395,7 @@ pub fn compare_scene(
     if let Some((truth, spps, paths)) = &settings.curves {
         check_budgets(*truth, spps, paths)?;
     }
-    let plan = analyse(scene, opts.analysis);
+    let mut plan = analyse(scene, opts.analysis);
     let passes = render_scene(scene, opts)?;
     let render = write_outputs(scene, opts, &passes)?;
     super::output::write_colorbar(&opts.out.join("colorbar.png"), 256, 12)?;
@@ -285,39 +414,31 @@ pub fn compare_scene(
     } else {
         None
     };
-    let mut analysis = serde_json::to_value(&plan).expect("plain data");
     let extension = passes.first().and_then(|p| p.extension.as_ref());
-    if let (Some(effect), Some(list)) = (
-        range_effect(scene, &plan, opts, extension)?,
-        analysis["effects"].as_array_mut(),
-    ) {
-        list.push(serde_json::to_value(effect).expect("plain data"));
+    if let Some(effect) = range_effect(scene, &plan, opts, extension)? {
+        plan.effects.push(effect);
     }
-    let skipped: Vec<serde_json::Value> = analysis["effects"]
-        .as_array()
-        .into_iter()
-        .flatten()
-        .filter(|e| e["needed"] == false)
-        .map(|e| e["name"].clone())
-        .collect();
-    let doc = serde_json::json!({
-        "format": "svkernel.compare",
-        "version": 1,
-        "scene": scene.path,
-        "scene_name": scene.name,
-        "analysis": analysis,
-        "skipped": skipped,
-        "savings": savings,
-        "render": render,
-        "curves": {
-            "truth_paths": settings.curves.as_ref().map(|c| c.0),
-            "truth_wall_s": truth_s,
-            "error": "relative RMSE against the truth (independent seed), the truth's variance subtracted, the method's noise included",
-            "curves": curves,
-            "speedups": speedups(&curves),
+    let skipped = plan.skipped().map(|e| e.name).collect();
+    let doc = CompareDoc {
+        format: COMPARE_FORMAT.into(),
+        version: COMPARE_VERSION,
+        scene: scene.path.clone(),
+        scene_name: scene.name.clone(),
+        analysis: plan,
+        skipped,
+        savings,
+        render,
+        curves: CurvesDoc {
+            truth_paths: settings.curves.as_ref().map(|c| c.0),
+            truth_wall_s: truth_s,
+            error: "relative RMSE against the truth (independent seed), the truth's variance \
+                    subtracted, the method's noise included"
+                .into(),
+            speedups: speedups(&curves),
+            curves,
         },
-        "provenance": crate::provenance::Provenance::current(),
-    });
+        provenance: Provenance::current(),
+    };
     crate::jobs::store::write_json_atomic(&opts.out.join("compare.json"), &doc)?;
     let blocks = report_blocks(&doc, &opts.out);
     write_report(
@@ -380,7 +501,7 @@ fn range_albedo_effect(
 ) -> Effect {
     match extension {
         None if plan.homogeneous => Effect {
-            name: "kernel simulation (missing albedo range)",
+            name: EffectKind::KernelSimulation,
             needed: false,
             detail: format!(
                 "the material is homogeneous (α = {lo}): learned is the profile, no kernel to \
@@ -391,7 +512,7 @@ fn range_albedo_effect(
             && super::extend::missing(plan.albedo_range, trained).is_some() =>
         {
             Effect {
-                name: "kernel simulation (missing albedo range)",
+                name: EffectKind::KernelSimulation,
                 needed: false,
                 detail: format!(
                     "the scene's α ∈ [{lo}, {hi}] leaves the trained [{}, {}], but extension is \
@@ -401,7 +522,7 @@ fn range_albedo_effect(
             }
         }
         None => Effect {
-            name: "kernel simulation (missing albedo range)",
+            name: EffectKind::KernelSimulation,
             needed: false,
             detail: format!(
                 "the scene's α ∈ [{lo}, {hi}] lies inside the meta-model's trained [{}, {}]: \
@@ -410,7 +531,7 @@ fn range_albedo_effect(
             ),
         },
         Some(e) => Effect {
-            name: "kernel simulation (missing albedo range)",
+            name: EffectKind::KernelSimulation,
             needed: true,
             detail: if e.cached {
                 format!(
@@ -443,7 +564,7 @@ fn range_albedo_effect(
 /// Renders the scene twice at the same settings, with the analysis on and
 /// off (reference at ≤ 1e6 paths, its times scaled to the full count), and
 /// returns each target's measured saving.
-fn measure_savings(scene: &Scene, opts: &RenderOptions) -> Result<serde_json::Value> {
+fn measure_savings(scene: &Scene, opts: &RenderOptions) -> Result<Savings> {
     let paths = opts.reference_paths.unwrap_or(scene.reference_paths);
     let probe = paths.min(1_000_000);
     let dir = opts.out.join("savings");
@@ -473,95 +594,88 @@ fn measure_savings(scene: &Scene, opts: &RenderOptions) -> Result<serde_json::Va
     let _ = std::fs::remove_dir_all(&dir);
     let scale = paths as f64 / probe as f64;
     let mut total = 0.0;
-    let targets: Vec<serde_json::Value> = times[0]
+    let targets: Vec<TargetSavings> = times[0]
         .iter()
         .zip(&times[1])
         .map(|(&(t, on), &(_, off))| {
             let k = if t == Target::Reference { scale } else { 1.0 };
             total += k * (off - on);
-            serde_json::json!({
-                "method": t.name(),
-                "with_skips_s": k * on,
-                "without_skips_s": k * off,
-                "saved_s": k * (off - on),
-            })
+            TargetSavings {
+                method: t,
+                with_skips_s: k * on,
+                without_skips_s: k * off,
+                saved_s: k * (off - on),
+            }
         })
         .collect();
-    Ok(serde_json::json!({
-        "how": format!("the same render with the analysis off; reference timed at {probe} paths and scaled to {paths}"),
-        "saved_s": total,
-        "targets": targets,
-    }))
+    Ok(Savings {
+        how: format!(
+            "the same render with the analysis off; reference timed at {probe} paths and \
+             scaled to {paths}"
+        ),
+        saved_s: total,
+        targets,
+    })
 }
 
 /// The report of one comparison (module docs of [`super::report`]).
-pub fn report_blocks(doc: &serde_json::Value, out: &Path) -> Vec<Block> {
+pub fn report_blocks(doc: &CompareDoc, out: &Path) -> Vec<Block> {
     use super::report::{err, num, pct};
-    let s = |v: &serde_json::Value| v.as_str().unwrap_or("").to_string();
-    let render = &doc["render"];
+    let render = &doc.render;
     let mut b = vec![
-        Block::Heading(2, format!("Scene `{}`", s(&doc["scene_name"]))),
+        Block::Heading(2, format!("Scene `{}`", doc.scene_name)),
         Block::Para(format!(
             "Scene file `{}`; {}² pixels, half-width {} MFP; {} light of radius {} MFP; \
              observable {}; {} spp, {} sampling, variant `{}`; reference {} paths, seed {}. \
              Commit `{}`.",
-            s(&render["scene"]),
-            render["resolution"],
-            render["half_width"],
-            s(&render["light"]["kind"]),
-            render["light"]["radius"],
-            s(&render["observable"]),
-            render["spp"],
-            s(&render["sampling"]),
-            match s(&render["variant"]).as_str() {
+            render.scene.display(),
+            render.resolution,
+            render.half_width,
+            light_name(&render.light.kind),
+            render.light.radius,
+            observable_name(render.observable),
+            render.spp,
+            render.sampling.name(),
+            match render.variant.as_str() {
                 "" => "default: density-scaled, vertex kernels, one pass".to_string(),
                 v => v.trim_start_matches('+').to_string(),
             },
-            render["reference_paths"],
-            render["seed"],
-            s(&render["provenance"]["git_commit"]),
+            render.reference_paths,
+            render.seed,
+            render.provenance.git_commit.as_deref().unwrap_or(""),
         )),
         Block::Heading(3, "What the scene calls for".into()),
         Block::table(
             &["effect", "simulated", "why"],
-            doc["analysis"]["effects"]
-                .as_array()
-                .into_iter()
-                .flatten()
+            doc.analysis
+                .effects
+                .iter()
                 .map(|e| {
                     vec![
-                        s(&e["name"]),
-                        if e["needed"].as_bool() == Some(true) {
-                            "yes"
-                        } else {
-                            "skipped"
-                        }
-                        .into(),
-                        s(&e["detail"]),
+                        e.name.to_string(),
+                        if e.needed { "yes" } else { "skipped" }.into(),
+                        e.detail.clone(),
                     ]
                 })
                 .collect(),
         ),
     ];
-    match doc["savings"].as_object() {
+    match &doc.savings {
         Some(sv) => {
             b.push(Block::Para(format!(
                 "The skips saved {:.2} s in all (measured: {}).",
-                sv["saved_s"].as_f64().unwrap_or(0.0),
-                s(&sv["how"])
+                sv.saved_s, sv.how
             )));
             b.push(Block::table(
                 &["target", "with skips [s]", "without [s]", "saved [s]"],
-                sv["targets"]
-                    .as_array()
-                    .into_iter()
-                    .flatten()
+                sv.targets
+                    .iter()
                     .map(|t| {
                         vec![
-                            s(&t["method"]),
-                            num(t["with_skips_s"].as_f64()),
-                            num(t["without_skips_s"].as_f64()),
-                            num(t["saved_s"].as_f64()),
+                            t.method.name().to_string(),
+                            num(Some(t.with_skips_s)),
+                            num(Some(t.without_skips_s)),
+                            num(Some(t.saved_s)),
                         ]
                     })
                     .collect(),
@@ -574,16 +688,14 @@ pub fn report_blocks(doc: &serde_json::Value, out: &Path) -> Vec<Block> {
                 .into(),
         )),
     }
-    for pass in render["passes"].as_array().into_iter().flatten() {
-        let tag = s(&pass["tag"]);
-        let dir = out.join(&tag);
-        let methods: Vec<&serde_json::Value> =
-            pass["methods"].as_array().into_iter().flatten().collect();
-        let names: Vec<String> = methods.iter().map(|m| s(&m["method"])).collect();
-        let white = pass["white_point"].as_f64().unwrap_or(f64::NAN);
+    for pass in &render.passes {
+        let tag = &pass.tag;
+        let dir = out.join(tag);
+        let names: Vec<&str> = pass.methods.iter().map(|m| m.method.name()).collect();
+        let white = pass.white_point;
         b.push(Block::Heading(
             3,
-            match pass["density"].as_f64() {
+            match pass.density {
                 Some(r) => format!("Pass `{tag}` (ρ = {r})"),
                 None => "Images".into(),
             },
@@ -591,13 +703,13 @@ pub fn report_blocks(doc: &serde_json::Value, out: &Path) -> Vec<Block> {
         b.push(Block::Images {
             items: names
                 .iter()
-                .map(|n| (n.clone(), dir.join(format!("{n}.png"))))
+                .map(|n| (n.to_string(), dir.join(format!("{n}.png"))))
                 .collect(),
             width: 160,
         });
         let diffs: Vec<(String, PathBuf)> = names
             .iter()
-            .filter(|n| *n != "reference" && dir.join(format!("{n}_diff.png")).exists())
+            .filter(|n| **n != "reference" && dir.join(format!("{n}_diff.png")).exists())
             .map(|n| {
                 (
                     format!("{n} − reference"),
@@ -620,9 +732,10 @@ pub fn report_blocks(doc: &serde_json::Value, out: &Path) -> Vec<Block> {
                 path: out.join("colorbar.png"),
             });
         }
-        let channels = methods
+        let channels = pass
+            .methods
             .iter()
-            .find_map(|m| m["metrics"]["channels"].as_array().map(|c| c.len()))
+            .find_map(|m| m.metrics.as_ref().map(|m| m.channels.len()))
             .unwrap_or(0);
         let names_c: Vec<&str> = if channels == 3 {
             vec!["R", "G", "B"]
@@ -637,20 +750,23 @@ pub fn report_blocks(doc: &serde_json::Value, out: &Path) -> Vec<Block> {
         }
         b.push(Block::Table {
             header,
-            rows: methods
+            rows: pass
+                .methods
                 .iter()
                 .map(|m| {
-                    let mt = &m["metrics"];
+                    let mt = m.metrics.as_ref();
                     let mut row = vec![
-                        s(&m["method"]),
-                        num(m["wall_s"].as_f64()),
-                        num(m["setup_s"].as_f64()),
-                        err(mt["rel_rmse"].as_f64()),
-                        pct(mt["rel_bias"].as_f64()),
+                        m.method.name().to_string(),
+                        num(Some(m.wall_s)),
+                        num(Some(m.setup_s)),
+                        err(mt.map(|x| x.rel_rmse)),
+                        pct(mt.map(|x| x.rel_bias)),
                     ];
                     if channels > 1 {
                         row.extend(
-                            (0..channels).map(|c| err(mt["channels"][c]["rel_rmse"].as_f64())),
+                            (0..channels).map(|c| {
+                                err(mt.and_then(|x| x.channels.get(c)).map(|x| x.rel_rmse))
+                            }),
                         );
                     }
                     row
@@ -665,14 +781,14 @@ pub fn report_blocks(doc: &serde_json::Value, out: &Path) -> Vec<Block> {
          reference paths to resolve it). rel bias = Σ(m − r)/Σr."
             .into(),
     ));
-    let curves = &doc["curves"];
-    if curves["curves"].as_array().is_some_and(|c| !c.is_empty()) {
+    let curves = &doc.curves;
+    if !curves.curves.is_empty() {
         b.push(Block::Heading(3, "What accuracy costs in time".into()));
         b.push(Block::Figure {
             caption: format!(
                 "error vs wall time against a truth of {} paths ({:.1} s); reference dashed",
-                curves["truth_paths"],
-                curves["truth_wall_s"].as_f64().unwrap_or(0.0)
+                curves.truth_paths.unwrap_or(0),
+                curves.truth_wall_s.unwrap_or(0.0)
             ),
             path: out.join("error_time.png"),
         });
@@ -686,19 +802,18 @@ pub fn report_blocks(doc: &serde_json::Value, out: &Path) -> Vec<Block> {
                 "speed-up",
                 "error floor",
             ],
-            curves["speedups"]
-                .as_array()
-                .into_iter()
-                .flatten()
+            curves
+                .speedups
+                .iter()
                 .map(|p| {
                     vec![
-                        s(&p["method"]),
-                        p["budget"].to_string(),
-                        num(p["wall_s"].as_f64()),
-                        pct(p["rel_rmse"].as_f64()),
-                        num(p["reference_s"].as_f64()),
-                        format!("{:.1}×", p["ratio"].as_f64().unwrap_or(f64::NAN)),
-                        pct(p["floor"].as_f64()),
+                        p.method.name().to_string(),
+                        p.budget.to_string(),
+                        num(Some(p.wall_s)),
+                        pct(Some(p.rel_rmse)),
+                        num(Some(p.reference_s)),
+                        format!("{:.1}×", p.ratio),
+                        pct(Some(p.floor)),
                     ]
                 })
                 .collect(),
@@ -714,18 +829,35 @@ pub fn report_blocks(doc: &serde_json::Value, out: &Path) -> Vec<Block> {
     b
 }
 
+/// The light's kind in words.
+fn light_name(kind: &crate::render::scene::LightKind) -> &'static str {
+    match kind {
+        crate::render::scene::LightKind::Collimated => "collimated",
+        crate::render::scene::LightKind::Diffuse => "diffuse",
+    }
+}
+
+/// The observable in words.
+fn observable_name(o: crate::render::scene::Observable) -> &'static str {
+    match o {
+        crate::render::scene::Observable::Exitance => "exitance",
+        crate::render::scene::Observable::Radiance => "radiance",
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     fn curve(name: &str, pts: &[(f64, f64)]) -> Curve {
         Curve {
-            method: name.into(),
+            method: Target::parse(name).unwrap(),
             points: pts
                 .iter()
                 .map(|&(wall_s, rel_rmse)| CurvePoint {
                     budget: 1,
                     wall_s,
+                    setup_s: 0.0,
                     rel_rmse,
                 })
                 .collect(),

@@ -25,10 +25,11 @@ use super::render::{RenderOptions, Target, metrics, render_scene};
 use super::report::{Block, err, num, pct};
 use crate::error::Result;
 use crate::metamodel::meta::MetaModelFile;
+use crate::provenance::Provenance;
 use crate::render::estimator::{Image, Sampling};
 use crate::render::scene::Scene;
 use crate::render::svbssrdf::{Method, Variant};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
 /// (x, y) points of a plotted series.
@@ -46,26 +47,121 @@ struct Config {
     basis: Option<PathBuf>,
 }
 
+/// The `format` of `experiments.json`.
+pub const EXPERIMENTS_FORMAT: &str = "svkernel.experiments";
+pub const EXPERIMENTS_VERSION: u32 = 1;
+
+/// `experiments.json`: the budgets and every measured row.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ExperimentsDoc {
+    /// [`EXPERIMENTS_FORMAT`], [`EXPERIMENTS_VERSION`].
+    pub format: String,
+    pub version: u32,
+    /// Samples per pixel of every model render, reference paths per pass.
+    pub spp: u32,
+    pub reference_paths: u64,
+    pub rows: Vec<Row>,
+    pub provenance: Provenance,
+}
+
+impl ExperimentsDoc {
+    /// The document of `rows` measured at these budgets, made now.
+    pub fn new(spp: u32, reference_paths: u64, rows: Vec<Row>) -> ExperimentsDoc {
+        ExperimentsDoc {
+            format: EXPERIMENTS_FORMAT.into(),
+            version: EXPERIMENTS_VERSION,
+            spp,
+            reference_paths,
+            rows,
+            provenance: Provenance::current(),
+        }
+    }
+
+    /// Reads `experiments.json`, checking its format and version.
+    pub fn load(path: &Path) -> Result<ExperimentsDoc> {
+        crate::jobs::store::load(path)
+    }
+}
+
+impl crate::doc::Document for ExperimentsDoc {
+    const FORMAT: &'static str = EXPERIMENTS_FORMAT;
+    const VERSION: u32 = EXPERIMENTS_VERSION;
+
+    fn validate(&self, _origin: &Path) -> Result<()> {
+        Ok(())
+    }
+}
+
+/// Every experiment's table as text (the report without its figure).
+impl std::fmt::Display for ExperimentsDoc {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&super::report::to_text(&sections(&self.rows).0))
+    }
+}
+
 /// One measured configuration on one pass of one scene.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Row {
     pub scene: String,
     pub pass: String,
-    pub method: &'static str,
+    pub method: Method,
     /// "" for the default variant.
     pub variant: String,
-    pub sampling: &'static str,
+    pub sampling: Sampling,
     pub model: Option<PathBuf>,
     pub basis: Option<PathBuf>,
+    /// The shape of `model` (absent in older files).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model_shape: Option<ModelShape>,
+    /// The shape of `basis` (absent in older files).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub basis_shape: Option<BasisShape>,
     pub spp: u32,
     pub wall_s: f64,
+    #[serde(with = "crate::doc::nan_as_null")]
     pub rel_rmse: f64,
+    #[serde(with = "crate::doc::nan_as_null")]
     pub rel_bias: f64,
     /// √(Σσ²/Σr²): the image's relative noise.
+    #[serde(with = "crate::doc::nan_as_null")]
     pub rel_noise: f64,
     /// The smallest rel RMSE this comparison resolves: ν·(2/N)^{1/4}, ν the
     /// two images' combined relative noise over N pixel values.
+    #[serde(with = "crate::doc::nan_as_null")]
     pub resolution: f64,
+}
+
+/// A meta-model's size (the `models` experiment).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ModelShape {
+    /// Gaussian components K of the all-vertex kernel.
+    pub k: usize,
+    /// Polynomial degrees in ln d and √(1 − α).
+    pub degrees: [usize; 2],
+    /// Every polynomial coefficient of the all- and last-vertex models.
+    pub coefficients: usize,
+}
+
+impl ModelShape {
+    pub fn of(m: &MetaModelFile) -> ModelShape {
+        ModelShape {
+            k: m.all.k,
+            degrees: [m.all.deg_x, m.all.deg_y],
+            coefficients: [&m.all, &m.last]
+                .iter()
+                .flat_map(|c| c.coeffs.iter().map(Vec::len))
+                .sum(),
+        }
+    }
+}
+
+/// A basis model's size (the `bases` experiment).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BasisShape {
+    /// Exponential terms of the multiple-scattering mixture.
+    pub terms: usize,
+    /// Polynomial degree in the albedo coordinate.
+    pub degree: usize,
 }
 
 /// What to run.
@@ -160,6 +256,11 @@ pub fn run(settings: &Settings, opts: &RenderOptions) -> Result<Vec<Row>> {
             if let Some(p) = &config.basis {
                 models = models.with_basis(p)?;
             }
+            let model_shape = config.model.as_ref().map(|_| ModelShape::of(&models.meta));
+            let basis_shape = config.basis.as_ref().map(|_| BasisShape {
+                terms: models.basis.ln_a.len(),
+                degree: models.basis.degree,
+            });
             let o = RenderOptions {
                 targets: vec![Target::Model(config.method)],
                 variant: config.variant,
@@ -175,11 +276,13 @@ pub fn run(settings: &Settings, opts: &RenderOptions) -> Result<Vec<Row>> {
                 rows.push(Row {
                     scene: scene.name.clone(),
                     pass: super::render::tag_or(&pass.tag).to_string(),
-                    method: config.method.name(),
+                    method: config.method,
                     variant: config.variant.tag(),
-                    sampling: config.sampling.name(),
+                    sampling: config.sampling,
                     model: config.model.clone(),
                     basis: config.basis.clone(),
+                    model_shape: model_shape.clone(),
+                    basis_shape: basis_shape.clone(),
                     spp: opts.spp.unwrap_or(scene.samples),
                     wall_s: img.wall_s,
                     rel_rmse: m.rel_rmse,
@@ -197,9 +300,9 @@ pub fn run(settings: &Settings, opts: &RenderOptions) -> Result<Vec<Row>> {
 fn find<'a>(
     rows: &'a [Row],
     key: (&str, &str),
-    method: &str,
+    method: Method,
     variant: &str,
-    sampling: &str,
+    sampling: Sampling,
     model: Option<&Path>,
 ) -> Option<&'a Row> {
     rows.iter().find(|r| {
@@ -236,7 +339,7 @@ fn label((scene, pass): &(String, String)) -> String {
 /// error against `variant`'s, and which wins; plus how often `variant` won.
 fn variant_table(
     rows: &[Row],
-    methods: &[&str],
+    methods: &[Method],
     variant: &str,
     names: [&str; 2],
 ) -> (Block, String) {
@@ -244,10 +347,10 @@ fn variant_table(
     let (mut wins, mut n) = (0, 0);
     for key in passes(rows) {
         let k = (key.0.as_str(), key.1.as_str());
-        for m in methods {
+        for &m in methods {
             let (Some(a), Some(b)) = (
-                find(rows, k, m, "", "importance", None),
-                find(rows, k, m, variant, "importance", None),
+                find(rows, k, m, "", Sampling::Importance, None),
+                find(rows, k, m, variant, Sampling::Importance, None),
             ) else {
                 continue;
             };
@@ -267,7 +370,7 @@ fn variant_table(
             };
             table.push(vec![
                 label(&key),
-                m.to_string(),
+                m.name().to_string(),
                 err(Some(a.rel_rmse)),
                 err(Some(b.rel_rmse)),
                 pct(Some(a.rel_bias)),
@@ -297,9 +400,10 @@ fn variant_table(
     )
 }
 
-/// The report's blocks (one section per experiment) and, if the `models`
-/// experiment ran, its error-vs-complexity plot at `plot` (PNG + SVG).
-pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
+/// The report's blocks: what was run (`doc`'s command line), one section
+/// per experiment and, if the `models` experiment ran, its
+/// error-vs-complexity plot at `plot` (PNG + SVG).
+pub fn report(doc: &ExperimentsDoc, plot: &Path) -> Result<Vec<Block>> {
     let mut b = vec![
         Block::Para(
             "Every number below is measured by the command that follows, against each scene's \
@@ -307,12 +411,45 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
              the method's bias is below what the budgets resolve)."
                 .into(),
         ),
-        Block::Code(command.to_string()),
-        Block::Heading(2, "Learned vs manual vs the baselines".into()),
+        Block::Code(doc.provenance.command_line.join(" ")),
     ];
-    let methods: Vec<&str> = Method::ALL.iter().map(|m| m.name()).collect();
+    let (sections, complexity) = sections(&doc.rows);
+    let at = b.len();
+    b.extend(sections);
+    if let Some((k, plotted)) = complexity {
+        use crate::jobs::plot::{Axes, chart, chart_svg};
+        let axes = Axes {
+            title: "learned: error vs Gaussian components K (degrees 3, 3)".into(),
+            x_label: "K".into(),
+            y_label: "relative RMSE vs reference".into(),
+            log_x: false,
+            log_y: true,
+        };
+        chart(plot, &axes, &plotted)?;
+        chart_svg(&plot.with_extension("svg"), &axes, &plotted)?;
+        b.insert(
+            at + k,
+            Block::Figure {
+                caption: "learned's error against K (solid; a point on the dashed line of its \
+                          scene is below what the comparison resolves)"
+                    .into(),
+                path: plot.to_path_buf(),
+            },
+        );
+    }
+    Ok(b)
+}
+
+/// One section per experiment, and for the `models` experiment the index in
+/// the sections where its plot belongs and the plot's series.
+fn sections(rows: &[Row]) -> (Vec<Block>, Option<(usize, Vec<crate::jobs::plot::Series>)>) {
+    let mut b = vec![Block::Heading(
+        2,
+        "Learned vs manual vs the baselines".into(),
+    )];
+    let methods = Method::ALL;
     let mut header = vec!["scene".to_string()];
-    header.extend(methods.iter().map(|m| m.to_string()));
+    header.extend(methods.iter().map(|m| m.name().to_string()));
     header.push("resolvable (learned)".into());
     let mut table = Vec::new();
     let (mut learned_wins, mut manual_wins, mut n) = (0, 0, 0);
@@ -320,13 +457,19 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
         let k = (key.0.as_str(), key.1.as_str());
         let e: Vec<Option<f64>> = methods
             .iter()
-            .map(|m| find(rows, k, m, "", "importance", None).map(|r| r.rel_rmse))
+            .map(|&m| find(rows, k, m, "", Sampling::Importance, None).map(|r| r.rel_rmse))
             .collect();
         let mut row = vec![label(&key)];
         row.extend(e.iter().map(|v| err(*v)));
-        row.push(pct(
-            find(rows, k, "learned", "", "importance", None).map(|r| r.resolution)
-        ));
+        row.push(pct(find(
+            rows,
+            k,
+            Method::Learned,
+            "",
+            Sampling::Importance,
+            None,
+        )
+        .map(|r| r.resolution)));
         table.push(row);
         if let [Some(p), Some(f), Some(l), Some(el), Some(ma), Some(le)] = e[..] {
             n += 1;
@@ -342,22 +485,22 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
         "learned is below manual on {learned_wins} of {n} scenes/passes; manual is below the \
          best of point/factorized/line/ellipse on {manual_wins} of {n}."
     )));
-    let sections: [(&str, &[&str], &str, [&str; 2]); 3] = [
+    let sections: [(&str, &[Method], &str, [&str; 2]); 3] = [
         (
             "Density-scaled vs plain aggregation",
-            &["manual", "learned"],
+            &[Method::Manual, Method::Learned],
             "+plain",
             ["density-scaled", "plain"],
         ),
         (
             "First/last-vertex kernels vs point albedos in the local terms",
-            &["learned"],
+            &[Method::Learned],
             "+point-albedos",
             ["vertex kernels", "point albedos"],
         ),
         (
             "One extra pass with α₀ = α_t (learned; manual's kernel does not depend on α₀)",
-            &["learned"],
+            &[Method::Learned],
             "+2pass",
             ["one pass", "two passes"],
         ),
@@ -375,9 +518,9 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
     let mut table = Vec::new();
     for key in passes(rows) {
         let k = (key.0.as_str(), key.1.as_str());
-        let cells: Vec<Option<&Row>> = ["uniform", "importance", "mis"]
-            .iter()
-            .map(|s| find(rows, k, "learned", "", s, None))
+        let cells: Vec<Option<&Row>> = [Sampling::Uniform, Sampling::Importance, Sampling::Mis]
+            .into_iter()
+            .map(|s| find(rows, k, Method::Learned, "", s, None))
             .collect();
         if cells[0].is_none() {
             continue;
@@ -410,6 +553,7 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
             .into(),
     ));
     let model_rows: Vec<&Row> = rows.iter().filter(|r| r.model.is_some()).collect();
+    let mut complexity = None;
     if !model_rows.is_empty() {
         b.push(Block::Heading(
             2,
@@ -420,25 +564,22 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
         let mut series: Vec<(String, Points, Points)> = Vec::new();
         for r in &model_rows {
             let path = r.model.as_deref().expect("filtered");
-            let m = MetaModelFile::load(path)?;
-            // Every polynomial coefficient of the all- and last-vertex models.
-            let coeffs: usize = [&m.all, &m.last]
-                .iter()
-                .flat_map(|c| c.coeffs.iter().map(Vec::len))
-                .sum();
+            let shape = r.model_shape.as_ref();
             table.push(vec![
                 label(&(r.scene.clone(), r.pass.clone())),
                 path.display().to_string(),
-                m.all.k.to_string(),
-                format!("{}, {}", m.all.deg_x, m.all.deg_y),
-                coeffs.to_string(),
+                shape.map_or("—".into(), |m| m.k.to_string()),
+                shape.map_or("—".into(), |m| {
+                    format!("{}, {}", m.degrees[0], m.degrees[1])
+                }),
+                shape.map_or("—".into(), |m| m.coefficients.to_string()),
                 num(Some(r.wall_s)),
                 err(Some(r.rel_rmse)),
                 pct(Some(r.resolution)),
                 pct(Some(r.rel_bias)),
             ]);
-            if (m.all.deg_x, m.all.deg_y) == (3, 3) {
-                let k = m.all.k as f64;
+            if let Some(m) = shape.filter(|m| m.degrees == [3, 3]) {
+                let k = m.k as f64;
                 let (e, f) = (r.rel_rmse.max(r.resolution), r.resolution);
                 match series.iter_mut().find(|(s, _, _)| *s == r.scene) {
                     Some((_, v, w)) => {
@@ -469,7 +610,7 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
              \"< noise\" rows lie below it."
                 .into(),
         ));
-        use crate::jobs::plot::{Axes, Series, chart, chart_svg};
+        use crate::jobs::plot::Series;
         let mut plotted: Vec<Series> = Vec::new();
         for (k, (name, mut e, mut f)) in series.into_iter().enumerate() {
             e.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -477,21 +618,7 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
             plotted.push(Series::line(name.clone(), e, k));
             plotted.push(Series::dashed(format!("{name}: resolvable"), f, k));
         }
-        let axes = Axes {
-            title: "learned: error vs Gaussian components K (degrees 3, 3)".into(),
-            x_label: "K".into(),
-            y_label: "relative RMSE vs reference".into(),
-            log_x: false,
-            log_y: true,
-        };
-        chart(plot, &axes, &plotted)?;
-        chart_svg(&plot.with_extension("svg"), &axes, &plotted)?;
-        b.push(Block::Figure {
-            caption: "learned's error against K (solid; a point on the dashed line of its scene \
-                      is below what the comparison resolves)"
-                .into(),
-            path: plot.to_path_buf(),
-        });
+        complexity = Some((b.len(), plotted));
     }
     let basis_rows: Vec<&Row> = rows.iter().filter(|r| r.basis.is_some()).collect();
     if !basis_rows.is_empty() {
@@ -499,12 +626,12 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
         let mut table = Vec::new();
         for r in basis_rows {
             let path = r.basis.as_deref().expect("filtered");
-            let m = crate::metamodel::basis::BasisModel::load(path)?;
+            let shape = r.basis_shape.as_ref();
             table.push(vec![
                 label(&(r.scene.clone(), r.pass.clone())),
                 path.display().to_string(),
-                m.ln_a.len().to_string(),
-                m.degree.to_string(),
+                shape.map_or("—".into(), |m| m.terms.to_string()),
+                shape.map_or("—".into(), |m| m.degree.to_string()),
                 num(Some(r.wall_s)),
                 err(Some(r.rel_rmse)),
                 pct(Some(r.resolution)),
@@ -525,7 +652,7 @@ pub fn report(rows: &[Row], command: &str, plot: &Path) -> Result<Vec<Block>> {
             table,
         ));
     }
-    Ok(b)
+    (b, complexity)
 }
 
 #[cfg(test)]
@@ -536,11 +663,13 @@ mod tests {
         Row {
             scene: "s".into(),
             pass: "main".into(),
-            method: "learned",
+            method: Method::Learned,
             variant: variant.into(),
-            sampling: "importance",
+            sampling: Sampling::Importance,
             model: None,
             basis: None,
+            model_shape: None,
+            basis_shape: None,
             spp: 4,
             wall_s: 1.0,
             rel_rmse,
@@ -556,7 +685,7 @@ mod tests {
         // either variant, and not counted.
         let rows = [row("", f64::NAN), row("+x", 0.1)];
         let (Block::Table { rows: table, .. }, summary) =
-            variant_table(&rows, &["learned"], "+x", ["default", "x"])
+            variant_table(&rows, &[Method::Learned], "+x", ["default", "x"])
         else {
             panic!("a table")
         };

@@ -32,7 +32,7 @@ use crate::forward::kernel::{KernelConfig, KernelDoc};
 use crate::forward::runner::{RunOptions, chunk_range};
 use crate::metamodel::meta::MetaModelFile;
 use crate::provenance::Provenance;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -56,7 +56,7 @@ const OVERLAP: f64 = 0.05;
 const MAX_ALBEDO: f64 = 0.995;
 
 /// What [`ensure`] did.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Extension {
     /// The scene's albedo interval outside the main model's range.
     pub missing: [f64; 2],

@@ -207,6 +207,38 @@ pub fn write_row_png(path: &Path, images: &[&Image], white: f64, range: f64) -> 
     write_png_bytes_wh(path, width, height, true, &data)
 }
 
+/// A preview of input maps over the image window (half-width `half_width`,
+/// as the renders see them): one map is grey, three are R, G, B; each texel
+/// value v is shown as v / `white` in linear 8-bit (black 0, white
+/// `white`), nearest texel at each preview pixel's centre. The preview has
+/// `n` pixels a side, raised to the texel count across the window (at most
+/// 4n) so that texels smaller than a render pixel still show.
+pub fn write_map_png(
+    path: &Path,
+    maps: &[&crate::forward::maps::TexelMap],
+    n: usize,
+    half_width: f64,
+    white: f64,
+) -> Result<()> {
+    let texel = maps.iter().map(|m| m.texel).fold(f64::INFINITY, f64::min);
+    let across = (2.0 * half_width / texel).ceil();
+    let m = if across.is_finite() {
+        (across as usize).clamp(n, 4 * n)
+    } else {
+        n
+    };
+    let step = 2.0 * half_width / m as f64;
+    let mut data = Vec::with_capacity(m * m * maps.len());
+    for i in 0..m {
+        let y = half_width - (i as f64 + 0.5) * step;
+        for j in 0..m {
+            let x = -half_width + (j as f64 + 0.5) * step;
+            data.extend(maps.iter().map(|map| to_u8(map.at(x, y) / white)));
+        }
+    }
+    write_png_bytes(path, m, maps.len() == 3, &data)
+}
+
 /// The colour bar of the difference images: [`diverging`] from −1 (left)
 /// to +1 (right), `width` × `height` pixels.
 pub fn write_colorbar(path: &Path, width: usize, height: usize) -> Result<()> {

@@ -12,11 +12,14 @@
 //! * `<pass>/<method>_mean.npy`, `<pass>/<method>_stderr.npy` — `(N, N, C)`;
 //! * `<pass>/reference.tally.json` — the mergeable reference tally;
 //! * `<pass>/albedo.npy`, `<pass>/density.npy` — the material's texels;
+//! * `<pass>/albedo.png`, and `<pass>/density.png` with a density map —
+//!   previews of the input maps over the image window (linear: black 0,
+//!   white albedo 1 or the map's largest density);
 //! * `<pass>/row.png` — reference | each method (in render order), with the
 //!   signed differences to the reference below (blue −, red +, ±25 % of
 //!   the white point);
-//! * `render.json` — scene, settings, per-method timings and errors
-//!   against the reference, provenance.
+//! * `render.json` ([`RenderDoc`]) — scene, settings, per-method timings
+//!   and errors against the reference, provenance.
 
 use super::extend::{self, Extension};
 use super::output;
@@ -28,7 +31,7 @@ use crate::provenance::Provenance;
 use crate::render::analysis::analyse;
 use crate::render::estimator::{self, Image, Sampling, Settings, View};
 use crate::render::reference::{REFERENCE_FORMAT, REFERENCE_VERSION, Reference, ReferenceTally};
-use crate::render::scene::{LightKind, Scene};
+use crate::render::scene::{LightKind, Observable, Scene};
 use crate::render::svbssrdf::{BasisTable, Density, Material, Method, SvBssrdf, Variant};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -75,6 +78,20 @@ impl clap::ValueEnum for Target {
 
     fn to_possible_value(&self) -> Option<clap::builder::PossibleValue> {
         Some(clap::builder::PossibleValue::new(self.name()))
+    }
+}
+
+/// Written as its name ([`Target::name`]).
+impl Serialize for Target {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        s.serialize_str(self.name())
+    }
+}
+
+impl<'de> Deserialize<'de> for Target {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        let s = String::deserialize(d)?;
+        Target::parse(&s).map_err(serde::de::Error::custom)
     }
 }
 
@@ -237,22 +254,26 @@ pub struct Pass {
 }
 
 /// Errors of a method image against the reference, over all channels and
-/// per channel.
-#[derive(Clone, Debug, Serialize)]
+/// per channel (NaN, written `null`, against a black reference).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Metrics {
     /// √(max(0, Σ(m − r)² − Σ(σ_m² + σ_r²))/Σ r²): relative RMSE with both
     /// images' own noise subtracted.
+    #[serde(with = "crate::doc::nan_as_null")]
     pub rel_rmse: f64,
     /// Σ(m − r)/Σ r: mean relative bias.
+    #[serde(with = "crate::doc::nan_as_null")]
     pub rel_bias: f64,
     /// The same two numbers per channel (Y, or R, G, B).
     pub channels: Vec<ChannelMetrics>,
 }
 
 /// [`Metrics`] of one channel.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ChannelMetrics {
+    #[serde(with = "crate::doc::nan_as_null")]
     pub rel_rmse: f64,
+    #[serde(with = "crate::doc::nan_as_null")]
     pub rel_bias: f64,
 }
 
@@ -672,18 +693,239 @@ fn write_maps(
     crate::jobs::store::write_npy_atomic(&dir.join("density.npy"), &density)
 }
 
+/// The `format` of `render.json`.
+pub const RENDER_FORMAT: &str = "svkernel.render";
+pub const RENDER_VERSION: u32 = 1;
+
+/// `render.json`: the scene, the settings, every pass's methods with their
+/// timings and errors against the reference, and provenance.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RenderDoc {
+    /// [`RENDER_FORMAT`], [`RENDER_VERSION`].
+    pub format: String,
+    pub version: u32,
+    /// The scene file, its name and [`scene_hash`].
+    pub scene: PathBuf,
+    pub scene_name: String,
+    pub scene_hash: String,
+    /// N (N × N pixels) and the half-width W of the image window (MFP).
+    pub resolution: usize,
+    pub half_width: f64,
+    pub observable: Observable,
+    pub eta: f64,
+    pub g: f64,
+    /// Texel size of the scene's maps, and of `albedo.npy` (MFP).
+    pub texel: f64,
+    pub albedo_texel: f64,
+    pub light: LightDoc,
+    /// How maps and pixels sit in the plane (for external renderers).
+    pub conventions: String,
+    /// Samples per pixel of the model methods.
+    pub spp: u32,
+    pub sampling: Sampling,
+    /// [`Variant::tag`]: "" for the default.
+    pub variant: String,
+    pub seed: u64,
+    pub reference_paths: u64,
+    /// "k/N" for a shard of the reference.
+    pub shard: Option<String>,
+    /// How the PNG previews are tone-mapped.
+    pub tone_map: String,
+    /// What the material is (absent in older files).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub material: Option<MaterialSummary>,
+    pub passes: Vec<PassDoc>,
+    pub provenance: Provenance,
+}
+
+/// The light of [`RenderDoc`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LightDoc {
+    pub kind: LightKind,
+    /// Radius of the light disk (MFP).
+    pub radius: f64,
+    pub irradiance: f64,
+}
+
+/// The scene's material, as the report describes it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MaterialSummary {
+    /// Albedo channels as written: 1 or 3 (R, G, B).
+    pub albedo_channels: usize,
+    /// One channel, or three identical ones.
+    pub grey: bool,
+    /// The albedo's range over all channels and texels.
+    pub albedo_range: [f64; 2],
+    pub density: DensitySource,
+}
+
+/// Where the density comes from.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase")]
+pub enum DensitySource {
+    /// No density map: ρ = 1 everywhere.
+    Unit,
+    /// A density map, with its range.
+    Map { range: [f64; 2] },
+    /// A sweep: one pass per constant density.
+    Sweep { values: Vec<f64> },
+}
+
+impl MaterialSummary {
+    /// The material of `scene`.
+    pub fn of(scene: &Scene) -> MaterialSummary {
+        let range = |m: &mut dyn Iterator<Item = f64>| {
+            m.fold([f64::INFINITY, f64::NEG_INFINITY], |[lo, hi], v| {
+                [lo.min(v), hi.max(v)]
+            })
+        };
+        MaterialSummary {
+            albedo_channels: scene.albedo.len(),
+            grey: scene.is_grey(),
+            albedo_range: range(&mut scene.albedo.iter().flat_map(|m| m.values.iter().copied())),
+            density: match (&scene.density, scene.density_sweep.is_empty()) {
+                (Some(m), _) => DensitySource::Map {
+                    range: range(&mut m.values.iter().copied()),
+                },
+                (None, false) => DensitySource::Sweep {
+                    values: scene.density_sweep.clone(),
+                },
+                (None, true) => DensitySource::Unit,
+            },
+        }
+    }
+}
+
+/// One pass of [`RenderDoc`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PassDoc {
+    /// The pass's directory: "main", or `rho<ρ>` of a density sweep.
+    pub tag: String,
+    /// The sweep's constant density (`None`: the scene's map, or 1).
+    pub density: Option<f64>,
+    /// White point of the previews ([`output::white_point`]).
+    pub white_point: f64,
+    /// Reference scattering events per second, if simulated here.
+    pub reference_events_per_s: Option<f64>,
+    /// The meta-model extension `learned` used ([`super::extend`]).
+    pub metamodel_extension: Option<Extension>,
+    pub methods: Vec<MethodDoc>,
+}
+
+/// One rendered target of a pass.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MethodDoc {
+    pub method: Target,
+    /// Wall time, set-up included, and the set-up part (pyramid builds).
+    pub wall_s: f64,
+    pub setup_s: f64,
+    /// Against the reference (`None` for the reference itself, or without
+    /// one).
+    pub metrics: Option<Metrics>,
+    /// Mean pixel value over all channels.
+    #[serde(with = "crate::doc::nan_as_null")]
+    pub mean: f64,
+}
+
+impl RenderDoc {
+    /// Reads `render.json`, checking its format and version.
+    pub fn load(path: &Path) -> Result<RenderDoc> {
+        crate::jobs::store::load(path)
+    }
+}
+
+impl crate::doc::Document for RenderDoc {
+    const FORMAT: &'static str = RENDER_FORMAT;
+    const VERSION: u32 = RENDER_VERSION;
+
+    fn validate(&self, _origin: &Path) -> Result<()> {
+        Ok(())
+    }
+}
+
+/// The header of [`MethodDoc`]'s rows.
+pub struct MethodHeader;
+
+impl std::fmt::Display for MethodHeader {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{:<11} {:>9} {:>10} {:>10} {:>10}",
+            "method", "time [s]", "set-up [s]", "rel RMSE", "rel bias"
+        )
+    }
+}
+
+/// A row under [`MethodHeader`]: name, time, set-up, relative RMSE and bias
+/// against the reference ("—" for the reference itself).
+impl std::fmt::Display for MethodDoc {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        use super::report::{err, pct};
+        let m = self.metrics.as_ref();
+        write!(
+            f,
+            "{:<11} {:>9.2} {:>10.2} {:>10} {:>10}",
+            self.method.name(),
+            self.wall_s,
+            self.setup_s,
+            err(m.map(|m| m.rel_rmse)),
+            pct(m.map(|m| m.rel_bias))
+        )
+    }
+}
+
+/// The method table of a pass, indented by two spaces, and the reference's
+/// speed.
+impl std::fmt::Display for PassDoc {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(f, "  {MethodHeader}")?;
+        for m in &self.methods {
+            writeln!(f, "  {m}")?;
+        }
+        if let Some(e) = self.reference_events_per_s {
+            writeln!(f, "  reference: {e:.3e} scattering events/s")?;
+        }
+        Ok(())
+    }
+}
+
+/// Every pass's table.
+impl std::fmt::Display for RenderDoc {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        for pass in &self.passes {
+            writeln!(f, "pass {}:", pass.tag)?;
+            write!(f, "{pass}")?;
+        }
+        Ok(())
+    }
+}
+
 /// Writes every image and the sidecar `render.json`; returns the sidecar.
-pub fn write_outputs(
-    scene: &Scene,
-    opts: &RenderOptions,
-    passes: &[Pass],
-) -> Result<serde_json::Value> {
+pub fn write_outputs(scene: &Scene, opts: &RenderOptions, passes: &[Pass]) -> Result<RenderDoc> {
     // The albedo as external renderers get it: the same for every pass.
     let albedo = albedo_grid(scene)?;
     let mut pass_docs = Vec::new();
     for pass in passes {
         let dir = opts.out.join(tag_or(&pass.tag));
         write_maps(scene, &albedo, pass, &dir)?;
+        let channels: Vec<_> = scene.albedo.iter().collect();
+        output::write_map_png(
+            &dir.join("albedo.png"),
+            &channels,
+            scene.resolution,
+            scene.half_width,
+            1.0,
+        )?;
+        if let (None, Some(m)) = (pass.density, &scene.density) {
+            let max = m.values.iter().copied().fold(0.0, f64::max);
+            output::write_map_png(
+                &dir.join("density.png"),
+                &[m],
+                scene.resolution,
+                scene.half_width,
+                if max > 0.0 { max } else { 1.0 },
+            )?;
+        }
         let reference = pass
             .rendered
             .iter()
@@ -712,13 +954,13 @@ pub fn write_outputs(
                 }
                 _ => None,
             };
-            methods.push(serde_json::json!({
-                "method": name,
-                "wall_s": r.wall_s,
-                "setup_s": r.setup_s,
-                "metrics": m,
-                "mean": r.image.mean.iter().sum::<f64>() / r.image.mean.len() as f64,
-            }));
+            methods.push(MethodDoc {
+                method: r.target,
+                wall_s: r.wall_s,
+                setup_s: r.setup_s,
+                metrics: m,
+                mean: r.image.mean.iter().sum::<f64>() / r.image.mean.len() as f64,
+            });
         }
         if let Some(reference) = reference {
             let mut row = vec![reference];
@@ -730,44 +972,45 @@ pub fn write_outputs(
             );
             output::write_row_png(&dir.join("row.png"), &row, white, 0.25 * white)?;
         }
-        pass_docs.push(serde_json::json!({
-            "tag": tag_or(&pass.tag),
-            "density": pass.density,
-            "white_point": white,
-            "reference_events_per_s": pass.reference_events_per_s,
-            "metamodel_extension": pass.extension,
-            "methods": methods,
-        }));
+        pass_docs.push(PassDoc {
+            tag: tag_or(&pass.tag).to_string(),
+            density: pass.density,
+            white_point: white,
+            reference_events_per_s: pass.reference_events_per_s,
+            metamodel_extension: pass.extension.clone(),
+            methods,
+        });
     }
-    let doc = serde_json::json!({
-        "format": "svkernel.render",
-        "version": 1,
-        "scene": scene.path,
-        "scene_name": scene.name,
-        "scene_hash": scene_hash(scene)?,
-        "resolution": scene.resolution,
-        "half_width": scene.half_width,
-        "observable": format!("{:?}", scene.observable).to_lowercase(),
-        "eta": scene.eta,
-        "g": scene.g,
-        "texel": scene.texel,
-        "albedo_texel": albedo[0].texel,
-        "light": {
-            "kind": format!("{:?}", scene.light).to_lowercase(),
-            "radius": scene.light_radius,
-            "irradiance": scene.irradiance,
+    let doc = RenderDoc {
+        format: RENDER_FORMAT.into(),
+        version: RENDER_VERSION,
+        scene: scene.path.clone(),
+        scene_name: scene.name.clone(),
+        scene_hash: scene_hash(scene)?,
+        resolution: scene.resolution,
+        half_width: scene.half_width,
+        observable: scene.observable,
+        eta: scene.eta,
+        g: scene.g,
+        texel: scene.texel,
+        albedo_texel: albedo[0].texel,
+        light: LightDoc {
+            kind: scene.light.clone(),
+            radius: scene.light_radius,
+            irradiance: scene.irradiance,
         },
-        "conventions": "maps: centred on the origin, row 0 = +y, column 0 = -x, nearest-neighbour, edge texels extend to infinity; pixel (i, j) covers x in -W + [j, j+1]*2W/N, y in W - [i+1, i]*2W/N; z < 0 is the medium (half-space)",
-        "spp": opts.spp.unwrap_or(scene.samples),
-        "sampling": opts.sampling.name(),
-        "variant": opts.variant.tag(),
-        "seed": opts.seed,
-        "reference_paths": opts.reference_paths.unwrap_or(scene.reference_paths),
-        "shard": opts.shard.map(|s| format!("{}/{}", s.index, s.count)),
-        "tone_map": "sRGB OETF of clamp(v / white_point, 0, 1); white_point = 99.5th percentile of the reference, or of the pass's first image without one",
-        "passes": pass_docs,
-        "provenance": Provenance::current(),
-    });
+        conventions: "maps: centred on the origin, row 0 = +y, column 0 = -x, nearest-neighbour, edge texels extend to infinity; pixel (i, j) covers x in -W + [j, j+1]*2W/N, y in W - [i+1, i]*2W/N; z < 0 is the medium (half-space)".into(),
+        spp: opts.spp.unwrap_or(scene.samples),
+        sampling: opts.sampling,
+        variant: opts.variant.tag(),
+        seed: opts.seed,
+        reference_paths: opts.reference_paths.unwrap_or(scene.reference_paths),
+        shard: opts.shard.map(|s| format!("{}/{}", s.index, s.count)),
+        tone_map: "sRGB OETF of clamp(v / white_point, 0, 1); white_point = 99.5th percentile of the reference, or of the pass's first image without one".into(),
+        material: Some(MaterialSummary::of(scene)),
+        passes: pass_docs,
+        provenance: Provenance::current(),
+    };
     crate::jobs::store::write_json_atomic(&opts.out.join("render.json"), &doc)?;
     Ok(doc)
 }

@@ -206,6 +206,51 @@ pub fn to_markdown(title: &str, blocks: &[Block], base: &Path) -> String {
     m
 }
 
+/// The blocks as plain text for a terminal: headings, paragraphs and tables
+/// in aligned columns (numbers right-aligned); code, images and figures are
+/// left out.
+pub fn to_text(blocks: &[Block]) -> String {
+    let mut t = String::new();
+    for b in blocks {
+        match b {
+            Block::Heading(level, text) => {
+                let _ = writeln!(t, "{} {text}", "#".repeat(*level as usize));
+            }
+            Block::Para(text) => {
+                let _ = writeln!(t, "{text}");
+            }
+            Block::Table { header, rows } => {
+                let width = |k: usize| {
+                    std::iter::once(header)
+                        .chain(rows)
+                        .filter_map(|r| r.get(k))
+                        .map(|c| c.chars().count())
+                        .max()
+                        .unwrap_or(0)
+                };
+                let widths: Vec<usize> = (0..header.len()).map(width).collect();
+                for (n, r) in std::iter::once(header).chain(rows).enumerate() {
+                    let cells: Vec<String> = r
+                        .iter()
+                        .zip(&widths)
+                        .map(|(c, &w)| {
+                            let pad = " ".repeat(w.saturating_sub(c.chars().count()));
+                            if n > 0 && numeric(c) {
+                                format!("{pad}{c}")
+                            } else {
+                                format!("{c}{pad}")
+                            }
+                        })
+                        .collect();
+                    let _ = writeln!(t, "  {}", cells.join("  ").trim_end());
+                }
+            }
+            Block::Code(_) | Block::Images { .. } | Block::Figure { .. } => {}
+        }
+    }
+    t
+}
+
 /// Writes `<dir>/<stem>.html` (self-contained) and `<dir>/<stem>.md`,
 /// atomically; returns the HTML path.
 pub fn write_report(dir: &Path, stem: &str, title: &str, blocks: &[Block]) -> Result<PathBuf> {

@@ -30,13 +30,61 @@
 
 use super::scene::{LightKind, Scene};
 use crate::forward::maps::TexelMap;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
+
+/// The effects the analysis (and the compare report) considers, written as
+/// their short names ("rgb channels", "density pyramid", …).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum EffectKind {
+    #[serde(rename = "rgb channels")]
+    RgbChannels,
+    #[serde(rename = "density pyramid")]
+    DensityPyramid,
+    #[serde(rename = "albedo aggregation")]
+    AlbedoAggregation,
+    #[serde(rename = "collimated-incidence profile")]
+    CollimatedProfile,
+    #[serde(rename = "diffuse-incidence profile")]
+    DiffuseProfile,
+    /// Simulating and fitting the meta-model where the scene's albedos
+    /// leave its trained range ([`super::extend`]).
+    #[serde(rename = "kernel simulation (missing albedo range)")]
+    KernelSimulation,
+}
+
+impl EffectKind {
+    /// The short name.
+    pub fn name(self) -> &'static str {
+        match self {
+            EffectKind::RgbChannels => "rgb channels",
+            EffectKind::DensityPyramid => "density pyramid",
+            EffectKind::AlbedoAggregation => "albedo aggregation",
+            EffectKind::CollimatedProfile => "collimated-incidence profile",
+            EffectKind::DiffuseProfile => "diffuse-incidence profile",
+            EffectKind::KernelSimulation => "kernel simulation (missing albedo range)",
+        }
+    }
+}
+
+impl std::fmt::Display for EffectKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// The incidence a basis profile is fitted to: a collimated light needs
+/// pencil-beam profiles, a diffuse one diffuse-incidence profiles.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Incidence {
+    Pencil,
+    Diffuse,
+}
 
 /// One effect the analysis considered.
-#[derive(Clone, Debug, Serialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct Effect {
-    /// Short name ("rgb channels", "density pyramid", …).
-    pub name: &'static str,
+    pub name: EffectKind,
     /// False: skipped (the scene does not call for it).
     pub needed: bool,
     /// Why, in words.
@@ -44,7 +92,7 @@ pub struct Effect {
 }
 
 /// What the scene needs (module docs).
-#[derive(Clone, Debug, Serialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct Plan {
     /// Render one channel (grey albedo).
     pub grey: bool,
@@ -53,8 +101,8 @@ pub struct Plan {
     /// Albedo and density both constant: every method is the homogeneous
     /// profile.
     pub homogeneous: bool,
-    /// "pencil" (collimated light) or "diffuse".
-    pub incidence: &'static str,
+    /// Pencil (collimated light) or diffuse.
+    pub incidence: Incidence,
     /// Albedo range over all channels and texels.
     pub albedo_range: [f64; 2],
     /// Density range (the sweep's or the map's; 1 without either).
@@ -63,6 +111,21 @@ pub struct Plan {
     /// pixel corner to the far edge of the light disk.
     pub max_optical_distance: f64,
     pub effects: Vec<Effect>,
+}
+
+/// Values as "a, b and c".
+pub fn list(values: &[f64]) -> String {
+    let v: Vec<String> = values.iter().map(|v| v.to_string()).collect();
+    list_names(&v)
+}
+
+/// Words as "a, b and c".
+pub fn list_names<S: AsRef<str>>(words: &[S]) -> String {
+    let v: Vec<&str> = words.iter().map(|w| w.as_ref()).collect();
+    match v.split_last() {
+        Some((last, rest)) if !rest.is_empty() => format!("{} and {last}", rest.join(", ")),
+        _ => v.join(""),
+    }
 }
 
 /// A map's single value, if every texel holds it.
@@ -99,12 +162,27 @@ pub fn analyse(scene: &Scene, skip: bool) -> Plan {
     let corner = scene.half_width * std::f64::consts::SQRT_2;
     let max_optical_distance = density_range[1] * (corner + scene.light_radius);
     let incidence = match scene.light {
-        LightKind::Collimated => "pencil",
-        LightKind::Diffuse => "diffuse",
+        LightKind::Collimated => Incidence::Pencil,
+        LightKind::Diffuse => Incidence::Diffuse,
+    };
+    let light = format!(
+        "the light is a {} disk of radius {} MFP",
+        match scene.light {
+            LightKind::Collimated => "collimated",
+            LightKind::Diffuse => "diffuse",
+        },
+        scene.light_radius
+    );
+    let basis = |kind: Incidence, name: &str| {
+        if incidence == kind {
+            format!("{light}: only the {name} basis is loaded")
+        } else {
+            format!("{light}: the {name} basis is not loaded")
+        }
     };
     let mut effects = vec![
         Effect {
-            name: "rgb channels",
+            name: EffectKind::RgbChannels,
             needed: !grey,
             detail: if scene.albedo.len() == 1 {
                 "the albedo is grey: one channel".into()
@@ -115,21 +193,25 @@ pub fn analyse(scene: &Scene, skip: bool) -> Plan {
             },
         },
         Effect {
-            name: "density pyramid",
+            name: EffectKind::DensityPyramid,
             needed: scene.density.is_some() && constant_density.is_none(),
             detail: match (&scene.density, constant_density) {
                 (Some(_), Some(v)) => {
                     format!("the density map is the constant {v}: no density pyramid")
                 }
-                (Some(_), None) => "the density varies: ρ and ρα pyramids".into(),
-                (None, _) if !scene.density_sweep.is_empty() => {
-                    "constant densities (a sweep): no density pyramid".into()
-                }
+                (Some(_), None) => format!(
+                    "the density map varies (ρ ∈ [{}, {}]): ρ and ρα pyramids",
+                    density_range[0], density_range[1]
+                ),
+                (None, _) if !scene.density_sweep.is_empty() => format!(
+                    "a sweep of constant densities (ρ = {}), one pass each: no density pyramid",
+                    list(&scene.density_sweep)
+                ),
                 (None, _) => "no density map (ρ = 1): no density pyramid".into(),
             },
         },
         Effect {
-            name: "albedo aggregation",
+            name: EffectKind::AlbedoAggregation,
             needed: !homogeneous,
             detail: if homogeneous {
                 "albedo and density are constant: every method is the homogeneous profile, no pyramid"
@@ -141,14 +223,14 @@ pub fn analyse(scene: &Scene, skip: bool) -> Plan {
             },
         },
         Effect {
-            name: "collimated-incidence profile",
-            needed: incidence == "pencil",
-            detail: format!("light is {incidence}: only the {incidence} basis is loaded"),
+            name: EffectKind::CollimatedProfile,
+            needed: incidence == Incidence::Pencil,
+            detail: basis(Incidence::Pencil, "collimated-incidence (pencil-beam)"),
         },
         Effect {
-            name: "diffuse-incidence profile",
-            needed: incidence == "diffuse",
-            detail: format!("light is {incidence}: only the {incidence} basis is loaded"),
+            name: EffectKind::DiffuseProfile,
+            needed: incidence == Incidence::Diffuse,
+            detail: basis(Incidence::Diffuse, "diffuse-incidence"),
         },
     ];
     if !skip {

@@ -4,17 +4,20 @@
 //! module holds only the loaded, validated values.
 
 use crate::forward::maps::TexelMap;
+use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
 /// The light of a scene.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum LightKind {
     Collimated,
     Diffuse,
 }
 
 /// What the image holds.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum Observable {
     /// Radiant exitance M(x, y) per unit incident irradiance.
     Exitance,

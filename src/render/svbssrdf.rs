@@ -117,6 +117,20 @@ impl Method {
     }
 }
 
+/// Written as its name ([`Method::name`]).
+impl serde::Serialize for Method {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        s.serialize_str(self.name())
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for Method {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        let s = String::deserialize(d)?;
+        Method::parse(&s).map_err(serde::de::Error::custom)
+    }
+}
+
 /// Options of the kernel methods (module docs). The default aggregates the
 /// local terms under the first- and last-vertex kernels (`vertex_kernels`):
 /// measured on the canonical scenes it cuts the learned method's relative
