@@ -248,6 +248,13 @@ impl Scene {
 
     /// A scene file, or else the built-in canonical scene of that name
     /// ([`crate::jobs::shipped::SCENES`]): `stripes` or `scenes/stripes.toml`.
+    ///
+    /// ```
+    /// use svkernel::render::scene::Scene;
+    /// let s = Scene::find(std::path::Path::new("checker"))?;
+    /// assert_eq!((s.name.as_str(), s.albedo.len()), ("checker", 1));
+    /// # Ok::<(), svkernel::Error>(())
+    /// ```
     pub fn find(name_or_path: &Path) -> Result<Scene> {
         if !name_or_path.exists()
             && let Some(text) = name_or_path

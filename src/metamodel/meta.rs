@@ -366,7 +366,23 @@ pub struct MetaModelFile {
 }
 
 impl MetaModelFile {
-    /// The kernel of `class` at (d, α, ρ).
+    /// The kernel of `class` at pair distance `d` (MFP), albedo `alpha`
+    /// and density `rho`: a Gaussian mixture in the pair frame (t from x_i
+    /// toward x_e, s across, MFP), and whether (d, α) was clamped to the
+    /// trained range.
+    ///
+    /// ```
+    /// use svkernel::prelude::*;
+    /// let models = Models::builtin()?;
+    /// let q = models.meta.eval(VertexClass::All, 1.0, 0.9, 1.0);
+    /// let mass: f64 = q.gmm.components.iter().map(|c| c.weight).sum();
+    /// assert!(!q.clamped && (mass - 1.0).abs() < 1e-9);
+    /// // The density law: at ρ = 4 the same optical distance is 4× shorter.
+    /// let dense = models.meta.eval(VertexClass::All, 0.25, 0.9, 4.0);
+    /// let t = |g: &Gmm| g.components.iter().map(|c| c.weight * c.t).sum::<f64>();
+    /// assert!((t(&dense.gmm) - t(&q.gmm) / 4.0).abs() < 1e-9);
+    /// # Ok::<(), svkernel::Error>(())
+    /// ```
     pub fn eval(&self, class: VertexClass, d: f64, alpha: f64, rho: f64) -> KernelQuery {
         match (class, &self.first) {
             (VertexClass::All, _) => self.all.eval(d, alpha, rho),
