@@ -1,5 +1,11 @@
 //! PNG plots (plotters, bitmap backend, text through fontconfig). One
 //! generic x–y chart ([`chart`]) serves every figure; writes are atomic.
+//!
+//! A chart's legend sits in a column right of the plot area (never over the
+//! data) and shows each series as drawn: solid or dashed, with its marker.
+//! A log axis is labelled at every decade (and at 2 and 5 where the range
+//! holds fewer than three decades), with light grid lines at 2…9 × each
+//! decade.
 
 use crate::error::{Error, Result};
 use crate::forward::profile::ProfileDoc;
@@ -23,6 +29,9 @@ pub struct Series {
     pub style: Style,
     /// Index into the palette.
     pub color: usize,
+    /// A line's points drawn as markers too, each with this text beside it
+    /// (`None`: a plain line; empty strings: markers without text).
+    pub marks: Option<Vec<String>>,
 }
 
 impl Series {
@@ -33,6 +42,7 @@ impl Series {
             errors: None,
             style: Style::Line,
             color,
+            marks: None,
         }
     }
     pub fn dashed(label: impl Into<String>, points: Vec<(f64, f64)>, color: usize) -> Self {
@@ -53,6 +63,16 @@ impl Series {
             errors,
             style: Style::Points,
             color,
+            marks: None,
+        }
+    }
+
+    /// The series with a marker at each point and `labels[k]` beside point
+    /// k.
+    pub fn marked(self, labels: Vec<String>) -> Self {
+        Series {
+            marks: Some(labels),
+            ..self
         }
     }
 }
@@ -95,14 +115,62 @@ fn range(v: impl Iterator<Item = f64>, log: bool) -> (f64, f64) {
     }
 }
 
+/// The bold (labelled) and light grid values of a log axis over [lo, hi]:
+/// every decade bold, 2…9 × each decade light; where fewer than three
+/// decades lie inside, 2 and 5 × each decade are bold too.
+pub fn log_ticks(lo: f64, hi: f64) -> (Vec<f64>, Vec<f64>) {
+    let (mut bold, mut light) = (Vec::new(), Vec::new());
+    if !(lo > 0.0 && hi > lo && hi.is_finite()) {
+        return (bold, light);
+    }
+    let (a, b) = (lo.log10().floor() as i32, hi.log10().ceil() as i32);
+    let inside = (a..=b)
+        .filter(|&k| (lo..=hi).contains(&10f64.powi(k)))
+        .count();
+    for k in a..=b {
+        let decade = 10f64.powi(k);
+        for m in 1..10 {
+            let v = m as f64 * decade;
+            if !(lo..=hi).contains(&v) {
+                continue;
+            }
+            if m == 1 || (inside < 3 && (m == 2 || m == 5)) {
+                bold.push(v);
+            } else {
+                light.push(v);
+            }
+        }
+    }
+    (bold, light)
+}
+
+/// Grid lines: bold at the labelled values, light between.
+const BOLD_GRID: RGBColor = RGBColor(200, 200, 200);
+const LIGHT_GRID: RGBColor = RGBColor(236, 236, 236);
+
+/// Width in pixels of the legend column for `series` (0 without labels).
+fn legend_width(series: &[Series]) -> u32 {
+    let chars = series
+        .iter()
+        .filter(|s| !s.label.is_empty())
+        .map(|s| s.label.chars().count())
+        .max();
+    chars.map_or(0, |c| (c as u32 * 8 + 60).clamp(110, 300))
+}
+
 /// The chart body on any plotters backend (`$root` a drawing area).
 macro_rules! draw_chart {
     ($root:expr, $axes:expr, $series:expr, $ranges:expr) => {{
         let (root, axes, series) = ($root, $axes, $series);
         let (x0, x1, y0, y1): (f64, f64, f64, f64) = $ranges;
+        let (w, _) = root.dim_in_pixel();
+        let legend_w = legend_width(series);
+        let (plot_area, legend_area) = root.split_horizontally(w - legend_w);
+        let (x_bold, x_light) = log_ticks(x0, x1);
+        let (y_bold, y_light) = log_ticks(y0, y1);
         macro_rules! builder {
             () => {
-                ChartBuilder::on(&root)
+                ChartBuilder::on(&plot_area)
                     .caption(&axes.title, ("sans-serif", 20))
                     .margin(15)
                     .x_label_area_size(45)
@@ -118,36 +186,54 @@ macro_rules! draw_chart {
                     .y_desc(axes.y_label.as_str())
                     .x_label_formatter(&|x| fmt_tick(*x, axes.log_x))
                     .y_label_formatter(&|y| fmt_tick(*y, axes.log_y))
+                    .bold_line_style(BOLD_GRID)
+                    .light_line_style(LIGHT_GRID)
+                    .label_style(("sans-serif", 14))
+                    .axis_desc_style(("sans-serif", 15))
                     .draw()?;
                 for s in series {
                     let color = PALETTE[s.color % PALETTE.len()];
-                    let pts: Vec<(f64, f64)> = s
-                        .points
-                        .iter()
-                        .cloned()
-                        .filter(|p| {
-                            p.0.is_finite()
-                                && p.1.is_finite()
-                                && (!axes.log_x || p.0 > 0.0)
-                                && (!axes.log_y || p.1 > 0.0)
-                        })
-                        .collect();
-                    let anno = match s.style {
-                        Style::Line => chart
-                            .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))?,
-                        Style::Dashed => chart.draw_series(DashedLineSeries::new(
-                            pts.clone(),
-                            6,
-                            4,
-                            color.stroke_width(2),
-                        ))?,
-                        Style::Points => chart
-                            .draw_series(pts.iter().map(|p| Circle::new(*p, 3, color.filled())))?,
+                    let visible = |p: &(f64, f64)| {
+                        p.0.is_finite()
+                            && p.1.is_finite()
+                            && (!axes.log_x || p.0 > 0.0)
+                            && (!axes.log_y || p.1 > 0.0)
                     };
-                    if !s.label.is_empty() {
-                        anno.label(s.label.as_str()).legend(move |(x, y)| {
-                            PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
-                        });
+                    let pts: Vec<(f64, f64)> = s.points.iter().cloned().filter(visible).collect();
+                    match s.style {
+                        Style::Line => {
+                            chart
+                                .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))?;
+                        }
+                        Style::Dashed => {
+                            chart.draw_series(DashedLineSeries::new(
+                                pts.clone(),
+                                8,
+                                5,
+                                color.stroke_width(2),
+                            ))?;
+                        }
+                        Style::Points => {
+                            chart.draw_series(
+                                pts.iter().map(|p| Circle::new(*p, 3, color.filled())),
+                            )?;
+                        }
+                    }
+                    if let Some(marks) = &s.marks {
+                        // Solid lines' texts above right of their points,
+                        // dashed lines' below left, so that two curves'
+                        // texts part.
+                        let (dx, dy) = if s.style == Style::Dashed {
+                            (-28, 4)
+                        } else {
+                            (6, -17)
+                        };
+                        let marked = s.points.iter().zip(marks).filter(|(p, _)| visible(p));
+                        chart.draw_series(marked.map(|(p, text)| {
+                            EmptyElement::at(*p)
+                                + Circle::new((0, 0), 4, color.filled())
+                                + Text::new(text.clone(), (dx, dy), ("sans-serif", 13))
+                        }))?;
                     }
                     if let Some(err) = &s.errors {
                         let bars = s.points.iter().zip(err).filter(|(p, e)| {
@@ -158,20 +244,63 @@ macro_rules! draw_chart {
                         }))?;
                     }
                 }
-                chart
-                    .configure_series_labels()
-                    .background_style(WHITE.mix(0.85))
-                    .border_style(BLACK)
-                    .draw()?;
             }};
         }
         match (axes.log_x, axes.log_y) {
-            (true, true) => {
-                body!(builder!().build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())?)
-            }
-            (true, false) => body!(builder!().build_cartesian_2d((x0..x1).log_scale(), y0..y1)?),
-            (false, true) => body!(builder!().build_cartesian_2d(x0..x1, (y0..y1).log_scale())?),
+            (true, true) => body!(
+                builder!().build_cartesian_2d(
+                    (x0..x1)
+                        .log_scale()
+                        .with_key_points(x_bold)
+                        .with_light_points(x_light),
+                    (y0..y1)
+                        .log_scale()
+                        .with_key_points(y_bold)
+                        .with_light_points(y_light),
+                )?
+            ),
+            (true, false) => body!(
+                builder!().build_cartesian_2d(
+                    (x0..x1)
+                        .log_scale()
+                        .with_key_points(x_bold)
+                        .with_light_points(x_light),
+                    y0..y1
+                )?
+            ),
+            (false, true) => body!(
+                builder!().build_cartesian_2d(
+                    x0..x1,
+                    (y0..y1)
+                        .log_scale()
+                        .with_key_points(y_bold)
+                        .with_light_points(y_light),
+                )?
+            ),
             (false, false) => body!(builder!().build_cartesian_2d(x0..x1, y0..y1)?),
+        }
+        // The legend: one row per labelled series, drawn as in the chart,
+        // from the top of the plot area down.
+        let mut y = 60;
+        for s in series.iter().filter(|s| !s.label.is_empty()) {
+            let color = PALETTE[s.color % PALETTE.len()];
+            let stroke = color.stroke_width(2);
+            match s.style {
+                Style::Line => {
+                    legend_area.draw(&PathElement::new(vec![(6, y), (40, y)], stroke))?;
+                }
+                Style::Dashed => {
+                    for x in [6, 19, 32] {
+                        legend_area.draw(&PathElement::new(vec![(x, y), (x + 8, y)], stroke))?;
+                    }
+                }
+                Style::Points => {}
+            }
+            if s.marks.is_some() || s.style == Style::Points {
+                legend_area.draw(&Circle::new((23, y), 4, color.filled()))?;
+            }
+            legend_area.draw(&Text::new(s.label.clone(), (48, y - 8), ("sans-serif", 15)))?;
+            y += 24;
         }
         Ok(())
     }};
@@ -186,17 +315,24 @@ fn chart_ranges(axes: &Axes, series: &[Series]) -> (f64, f64, f64, f64) {
     (x0, x1, y0, y1)
 }
 
-/// Draws an x–y chart to `path` (PNG, 900×600).
-pub fn chart(path: &Path, axes: &Axes, series: &[Series]) -> Result<()> {
-    let r = chart_ranges(axes, series);
-    png(path, (900, 600), |root| draw_chart!(root, axes, series, r))
+/// The size of a chart: 900 × 600 pixels and the legend column.
+fn chart_size(series: &[Series]) -> (u32, u32) {
+    (900 + legend_width(series), 600)
 }
 
-/// [`chart`] as SVG (900×600), written atomically.
+/// Draws an x–y chart to `path` (PNG, [`chart_size`]).
+pub fn chart(path: &Path, axes: &Axes, series: &[Series]) -> Result<()> {
+    let r = chart_ranges(axes, series);
+    png(path, chart_size(series), |root| {
+        draw_chart!(root, axes, series, r)
+    })
+}
+
+/// [`chart`] as SVG, written atomically.
 pub fn chart_svg(path: &Path, axes: &Axes, series: &[Series]) -> Result<()> {
     let r = chart_ranges(axes, series);
     atomic(path, |tmp| {
-        let root = SVGBackend::new(tmp, (900, 600)).into_drawing_area();
+        let root = SVGBackend::new(tmp, chart_size(series)).into_drawing_area();
         root.fill(&WHITE)?;
         let drawn: DrawResult = draw_chart!(&root, axes, series, r);
         drawn?;
@@ -236,7 +372,11 @@ fn png(
 }
 
 fn fmt_tick(v: f64, log: bool) -> String {
-    if log || (v != 0.0 && (v.abs() < 1e-2 || v.abs() >= 1e4)) {
+    if log && (1e-3..1e4).contains(&v) {
+        // Decimals enough for one significant figure: 0.002, 0.1, 5, 100.
+        let decimals = (-v.log10().floor()).max(0.0) as usize;
+        format!("{v:.decimals$}")
+    } else if log || (v != 0.0 && (v.abs() < 1e-2 || v.abs() >= 1e4)) {
         format!("{v:.0e}")
     } else {
         format!("{v:.3}")
@@ -337,4 +477,54 @@ fn ramp(v: f64) -> RGBColor {
     let (a, b) = (stops[k], stops[k + 1]);
     let mix = |p: f64, q: f64| (p + (q - p) * f).round() as u8;
     RGBColor(mix(a.0, b.0), mix(a.1, b.1), mix(a.2, b.2))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn log_axes_are_labelled_at_every_decade() {
+        let (bold, light) = log_ticks(0.004, 3.0);
+        assert_eq!(bold, [0.01, 0.1, 1.0]);
+        let has = |v: f64| light.iter().any(|l| (l - v).abs() < 1e-12);
+        assert!(has(0.005) && has(3.0) && !has(0.003));
+        assert_eq!(light.len(), 6 + 8 + 8 + 2);
+        // Under three decades: 2 and 5 are labelled too.
+        let (bold, _) = log_ticks(0.08, 1.5);
+        assert_eq!(bold, [0.1, 0.2, 0.5, 1.0]);
+        assert_eq!(fmt_tick(0.002, true), "0.002");
+        assert_eq!(fmt_tick(200.0, true), "200");
+        assert_eq!(fmt_tick(1e-5, true), "1e-5");
+    }
+
+    #[test]
+    fn a_chart_is_drawn_with_its_legend_beside_the_plot() {
+        let dir = std::env::temp_dir().join(format!("svk-plot-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let series = [
+            Series::dashed("reference (paths)", vec![(0.01, 0.3), (0.1, 0.1)], 0)
+                .marked(vec!["1e5".into(), "1e6".into()]),
+            Series::line("learned (spp)", vec![(0.02, 0.2), (0.08, 0.05)], 1)
+                .marked(vec!["4".into(), "16".into()]),
+        ];
+        let axes = Axes {
+            title: "t".into(),
+            x_label: "x".into(),
+            y_label: "y".into(),
+            log_x: true,
+            log_y: true,
+        };
+        chart(&dir.join("c.png"), &axes, &series).unwrap();
+        chart_svg(&dir.join("c.svg"), &axes, &series).unwrap();
+        let svg = std::fs::read_to_string(dir.join("c.svg")).unwrap();
+        let (w, _) = chart_size(&series);
+        assert!(w > 900 && svg.contains(&format!("width=\"{w}\"")), "{w}");
+        let text = |t: &str| svg.lines().any(|l| l.trim() == t);
+        assert!(
+            text("reference (paths)") && text("1e6") && text("16"),
+            "{svg}"
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }
