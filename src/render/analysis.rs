@@ -81,15 +81,6 @@ pub enum Incidence {
     Diffuse,
 }
 
-impl Incidence {
-    pub fn name(self) -> &'static str {
-        match self {
-            Incidence::Pencil => "pencil",
-            Incidence::Diffuse => "diffuse",
-        }
-    }
-}
-
 /// One effect the analysis considered.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct Effect {
@@ -120,6 +111,21 @@ pub struct Plan {
     /// pixel corner to the far edge of the light disk.
     pub max_optical_distance: f64,
     pub effects: Vec<Effect>,
+}
+
+/// Values as "a, b and c".
+pub fn list(values: &[f64]) -> String {
+    let v: Vec<String> = values.iter().map(|v| v.to_string()).collect();
+    list_names(&v)
+}
+
+/// Words as "a, b and c".
+pub fn list_names<S: AsRef<str>>(words: &[S]) -> String {
+    let v: Vec<&str> = words.iter().map(|w| w.as_ref()).collect();
+    match v.split_last() {
+        Some((last, rest)) if !rest.is_empty() => format!("{} and {last}", rest.join(", ")),
+        _ => v.join(""),
+    }
 }
 
 /// A map's single value, if every texel holds it.
@@ -159,6 +165,21 @@ pub fn analyse(scene: &Scene, skip: bool) -> Plan {
         LightKind::Collimated => Incidence::Pencil,
         LightKind::Diffuse => Incidence::Diffuse,
     };
+    let light = format!(
+        "the light is a {} disk of radius {} MFP",
+        match scene.light {
+            LightKind::Collimated => "collimated",
+            LightKind::Diffuse => "diffuse",
+        },
+        scene.light_radius
+    );
+    let basis = |kind: Incidence, name: &str| {
+        if incidence == kind {
+            format!("{light}: only the {name} basis is loaded")
+        } else {
+            format!("{light}: the {name} basis is not loaded")
+        }
+    };
     let mut effects = vec![
         Effect {
             name: EffectKind::RgbChannels,
@@ -178,10 +199,14 @@ pub fn analyse(scene: &Scene, skip: bool) -> Plan {
                 (Some(_), Some(v)) => {
                     format!("the density map is the constant {v}: no density pyramid")
                 }
-                (Some(_), None) => "the density varies: ρ and ρα pyramids".into(),
-                (None, _) if !scene.density_sweep.is_empty() => {
-                    "constant densities (a sweep): no density pyramid".into()
-                }
+                (Some(_), None) => format!(
+                    "the density map varies (ρ ∈ [{}, {}]): ρ and ρα pyramids",
+                    density_range[0], density_range[1]
+                ),
+                (None, _) if !scene.density_sweep.is_empty() => format!(
+                    "a sweep of constant densities (ρ = {}), one pass each: no density pyramid",
+                    list(&scene.density_sweep)
+                ),
                 (None, _) => "no density map (ρ = 1): no density pyramid".into(),
             },
         },
@@ -200,18 +225,12 @@ pub fn analyse(scene: &Scene, skip: bool) -> Plan {
         Effect {
             name: EffectKind::CollimatedProfile,
             needed: incidence == Incidence::Pencil,
-            detail: format!(
-                "light is {0}: only the {0} basis is loaded",
-                incidence.name()
-            ),
+            detail: basis(Incidence::Pencil, "collimated-incidence (pencil-beam)"),
         },
         Effect {
             name: EffectKind::DiffuseProfile,
             needed: incidence == Incidence::Diffuse,
-            detail: format!(
-                "light is {0}: only the {0} basis is loaded",
-                incidence.name()
-            ),
+            detail: basis(Incidence::Diffuse, "diffuse-incidence"),
         },
     ];
     if !skip {
