@@ -97,7 +97,7 @@ fn render_json_round_trips() {
 }
 
 #[test]
-fn compare_json_round_trips() {
+fn compare_json_round_trips_and_the_report_fits_the_scene() {
     let d = dir("compare");
     // A grey albedo written as RGB over a constant density map: the
     // analysis skips work, so the savings are measured too.
@@ -133,6 +133,70 @@ fn compare_json_round_trips() {
         serde_json::from_value(without(v, "/curves/curves/1/points/0", "setup_s")).unwrap();
     let p = &old.curves.curves[1].points[0];
     assert_eq!((p.setup_s, p.render_s()), (0.0, p.wall_s));
+    // The curves plot render time: the kernel method's set-up is recorded
+    // beside each point, not in it.
+    let manual = &doc.curves.curves[2];
+    assert_eq!(manual.method, Target::Model(Method::Manual));
+    assert!(
+        manual
+            .points
+            .iter()
+            .all(|p| p.setup_s > 0.0 && p.render_s() < p.wall_s)
+    );
+    // The report: each difference under its method (the reference's cell
+    // empty), the input maps, a verdict, the terms, and phrases that are
+    // true of this scene.
+    let md = std::fs::read_to_string(d.join("out/report.md")).unwrap();
+    assert!(
+        md.contains("|  | point − reference | manual − reference |"),
+        "{md}"
+    );
+    assert!(md.contains("](main/albedo.png)") && md.contains("](main/density.png)"));
+    assert!(md.contains("Verdict: ") && md.contains("## Terms"), "{md}");
+    assert!(
+        md.contains("three identical channels") && md.contains("a constant density map (ρ = 2)"),
+        "{md}"
+    );
+    assert!(
+        !md.contains("pencil basis") && !md.contains("a grey map"),
+        "{md}"
+    );
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+/// The analysis words the light as it is: its kind and radius.
+#[test]
+fn the_analysis_words_the_light_as_it_is() {
+    let d = dir("light");
+    for (kind, radius) in [("collimated", 1.0), ("diffuse", 1.5)] {
+        let p = d.join(format!("{kind}.toml"));
+        std::fs::write(
+            &p,
+            format!(
+                "albedo = {{ constant = 0.5 }}\n[light]\nkind = \"{kind}\"\nradius = {radius}\n"
+            ),
+        )
+        .unwrap();
+        let plan = svkernel::render::analysis::analyse(&Scene::load(&p).unwrap(), true);
+        let light: Vec<&str> = plan.effects[3..5]
+            .iter()
+            .map(|e| e.detail.as_str())
+            .collect();
+        for detail in &light {
+            assert!(
+                detail.starts_with(&format!(
+                    "the light is a {kind} disk of radius {radius} MFP"
+                )),
+                "{detail}"
+            );
+        }
+        let loaded = if kind == "diffuse" {
+            light[1]
+        } else {
+            light[0]
+        };
+        assert!(loaded.contains("only the"), "{loaded}");
+    }
     std::fs::remove_dir_all(&d).unwrap();
 }
 

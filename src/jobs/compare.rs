@@ -11,6 +11,13 @@
 //! A model's curve falls like 1/√time until it meets its bias (the floor);
 //! the reference's keeps falling, and where it crosses a model's curve is
 //! how long brute force needs to match that model.
+//!
+//! # Time
+//! A curve's time is the render time of each budget: a model's set-up (what
+//! it prepares once per scene and material, such as the kernel methods'
+//! pyramids) is recorded beside it
+//! ([`CurvePoint::setup_s`]) and stated separately in the report, so time
+//! grows with the budget; the reference has no set-up.
 
 use super::render::{RenderDoc, RenderOptions, Target, render_scene, write_outputs};
 use super::report::{Block, write_report};
@@ -147,26 +154,47 @@ pub fn error_vs_time(
     Ok((curves, *truth_s))
 }
 
-/// The log-log error-vs-time plot (reference dashed, models in the palette)
-/// as PNG at `path` and as SVG beside it (same stem, `.svg`).
+/// A budget in the plots and tables: spp as is, paths as `4e6` where that
+/// is exact.
+pub fn count(n: u64) -> String {
+    let k = (n as f64).log10().floor() as u32;
+    match 10u64.checked_pow(k) {
+        Some(p) if n >= 10_000 && n.is_multiple_of(p) => format!("{}e{k}", n / p),
+        _ => n.to_string(),
+    }
+}
+
+/// The log-log error-vs-render-time plot (reference dashed, models in the
+/// palette, every point marked with its budget) as PNG at `path` and as
+/// SVG beside it (same stem, `.svg`).
 pub fn plot_curves(path: &Path, scene: &str, curves: &[Curve]) -> Result<()> {
     use crate::jobs::plot::{Axes, Series, chart, chart_svg};
     let series: Vec<Series> = curves
         .iter()
         .enumerate()
         .map(|(k, c)| {
-            let pts = c.points.iter().map(|p| (p.wall_s, p.rel_rmse)).collect();
-            if c.method == Target::Reference {
-                Series::dashed(c.method.name(), pts, k)
+            let pts = c
+                .points
+                .iter()
+                .map(|p| (p.render_s(), p.rel_rmse))
+                .collect();
+            let (series, marks) = if c.method == Target::Reference {
+                let marks = c.points.iter().map(|p| count(p.budget)).collect();
+                (Series::dashed("reference (paths)", pts, k), marks)
             } else {
-                Series::line(c.method.name(), pts, k)
-            }
+                let marks = c.points.iter().map(|p| p.budget.to_string()).collect();
+                (
+                    Series::line(format!("{} (spp)", c.method.name()), pts, k),
+                    marks,
+                )
+            };
+            series.marked(marks)
         })
         .collect();
     let axes = Axes {
-        title: format!("{scene}: error vs time (reference dashed)"),
-        x_label: "wall time [s]".into(),
-        y_label: "relative RMSE vs truth".into(),
+        title: format!("{scene}: error vs render time"),
+        x_label: "render time per budget [s] (set-up excluded)".into(),
+        y_label: "relative RMSE vs truth (noise included)".into(),
         log_x: true,
         log_y: true,
     };
@@ -174,15 +202,15 @@ pub fn plot_curves(path: &Path, scene: &str, curves: &[Curve]) -> Result<()> {
     chart_svg(&path.with_extension("svg"), &axes, &series)
 }
 
-/// The reference's wall time to reach relative error `e`, read off its
+/// The reference's render time to reach relative error `e`, read off its
 /// curve: log-log interpolation between its points, and beyond them the
 /// Monte Carlo law e ∝ t^(−1/2) from the nearest end point.
 pub fn reference_time_for(reference: &Curve, e: f64) -> Option<f64> {
     let mut pts: Vec<(f64, f64)> = reference
         .points
         .iter()
-        .filter(|p| p.rel_rmse > 0.0 && p.wall_s > 0.0)
-        .map(|p| (p.wall_s, p.rel_rmse))
+        .filter(|p| p.rel_rmse > 0.0 && p.render_s() > 0.0)
+        .map(|p| (p.render_s(), p.rel_rmse))
         .collect();
     pts.sort_by(|a, b| a.0.total_cmp(&b.0));
     let (first, last) = (*pts.first()?, *pts.last()?);
@@ -209,21 +237,37 @@ pub fn reference_time_for(reference: &Curve, e: f64) -> Option<f64> {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Speedup {
     pub method: Target,
-    /// The model point with the largest ratio: its budget (spp), time and
-    /// error.
+    /// The model point with the largest ratio: its budget (spp), wall time
+    /// (set-up included), set-up and error.
     pub budget: u64,
     pub wall_s: f64,
+    #[serde(default)]
+    pub setup_s: f64,
+    #[serde(with = "crate::doc::nan_as_null")]
     pub rel_rmse: f64,
-    /// Reference time to the same error ([`reference_time_for`]).
+    /// Reference render time to the same error ([`reference_time_for`]).
     pub reference_s: f64,
-    /// `reference_s / wall_s`.
+    /// `reference_s` over the model's render time (set-up excluded).
     pub ratio: f64,
     /// The model's lowest error over its budgets (its floor, bias-bound).
     #[serde(with = "crate::doc::nan_as_null")]
     pub floor: f64,
 }
 
-/// Per model curve: the point where it beats brute force by the most.
+impl Speedup {
+    /// The model's render time: `wall_s` less the set-up.
+    pub fn render_s(&self) -> f64 {
+        self.wall_s - self.setup_s
+    }
+
+    /// The speed-up with the model's set-up counted: `reference_s / wall_s`.
+    pub fn ratio_with_setup(&self) -> f64 {
+        self.reference_s / self.wall_s.max(1e-9)
+    }
+}
+
+/// Per model curve: the point where it beats brute force by the most (at
+/// render time; the set-up is stated beside it).
 pub fn speedups(curves: &[Curve]) -> Vec<Speedup> {
     let Some(reference) = curves.iter().find(|c| c.method == Target::Reference) else {
         return Vec::new();
@@ -245,9 +289,10 @@ pub fn speedups(curves: &[Curve]) -> Vec<Speedup> {
                         method: c.method,
                         budget: p.budget,
                         wall_s: p.wall_s,
+                        setup_s: p.setup_s,
                         rel_rmse: p.rel_rmse,
                         reference_s: t,
-                        ratio: t / p.wall_s.max(1e-9),
+                        ratio: t / p.render_s().max(1e-9),
                         floor,
                     })
                 })
@@ -345,13 +390,16 @@ impl std::fmt::Display for Speedup {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "{:<11} {:>5} spp {:>7.2} s  error {:>6.2} %  reference needs {:>8.2} s  ({:.1}×)",
+            "{:<11} {:>5} spp {:>7.3} s (+{:.3} s set-up)  error {:>6.2} %  reference needs \
+             {:>7.3} s  ({:.2}×; {:.2}× with set-up)",
             self.method.name(),
             self.budget,
-            self.wall_s,
+            self.render_s(),
+            self.setup_s,
             100.0 * self.rel_rmse,
             self.reference_s,
             self.ratio,
+            self.ratio_with_setup(),
         )
     }
 }
@@ -441,11 +489,13 @@ pub fn compare_scene(
     };
     crate::jobs::store::write_json_atomic(&opts.out.join("compare.json"), &doc)?;
     let blocks = report_blocks(&doc, &opts.out);
+    let mut page = blocks.clone();
+    page.extend(glossary());
     write_report(
         &opts.out,
         "report",
         &format!("svkernel compare: {}", scene.name),
-        &blocks,
+        &page,
     )?;
     Ok(Comparison { doc, blocks })
 }
@@ -610,56 +660,85 @@ fn measure_savings(scene: &Scene, opts: &RenderOptions) -> Result<Savings> {
         .collect();
     Ok(Savings {
         how: format!(
-            "the same render with the analysis off; reference timed at {probe} paths and \
-             scaled to {paths}"
+            "the same render with the analysis off; reference timed at {} paths and scaled to \
+             {}",
+            count(probe),
+            count(paths)
         ),
         saved_s: total,
         targets,
     })
 }
 
-/// The report of one comparison (module docs of [`super::report`]).
+/// The report of one comparison (module docs of [`super::report`]): a
+/// verdict, the scene, its input maps, what the analysis skipped, every
+/// pass's images and errors, and what accuracy costs in time. The terms are
+/// explained by [`glossary`], which the caller appends (once per page).
 pub fn report_blocks(doc: &CompareDoc, out: &Path) -> Vec<Block> {
-    use super::report::{err, num, pct};
+    use super::report::{num, pct};
     let render = &doc.render;
     let mut b = vec![
         Block::Heading(2, format!("Scene `{}`", doc.scene_name)),
-        Block::Para(format!(
-            "Scene file `{}`; {}² pixels, half-width {} MFP; {} light of radius {} MFP; \
-             observable {}; {} spp, {} sampling, variant `{}`; reference {} paths, seed {}. \
-             Commit `{}`.",
-            render.scene.display(),
-            render.resolution,
-            render.half_width,
-            light_name(&render.light.kind),
-            render.light.radius,
-            observable_name(render.observable),
-            render.spp,
-            render.sampling.name(),
-            match render.variant.as_str() {
-                "" => "default: density-scaled, vertex kernels, one pass".to_string(),
-                v => v.trim_start_matches('+').to_string(),
-            },
-            render.reference_paths,
-            render.seed,
-            render.provenance.git_commit.as_deref().unwrap_or(""),
-        )),
-        Block::Heading(3, "What the scene calls for".into()),
-        Block::table(
-            &["effect", "simulated", "why"],
-            doc.analysis
-                .effects
-                .iter()
-                .map(|e| {
-                    vec![
-                        e.name.to_string(),
-                        if e.needed { "yes" } else { "skipped" }.into(),
-                        e.detail.clone(),
-                    ]
-                })
-                .collect(),
-        ),
+        Block::Para(format!("Verdict: {}", verdict(doc))),
+        Block::Para(scene_text(doc)),
     ];
+    if let Some(first) = render.passes.first() {
+        let dir = out.join(&first.tag);
+        let mut inputs = vec![Some((albedo_caption(doc), dir.join("albedo.png")))];
+        let density = dir.join("density.png");
+        if let Some(super::render::DensitySource::Map { range }) =
+            render.material.as_ref().map(|m| &m.density)
+            && density.exists()
+        {
+            inputs.push(Some((
+                format!(
+                    "density (input): {}; black 0, white {}",
+                    interval("ρ", *range),
+                    short(range[1])
+                ),
+                density,
+            )));
+        }
+        inputs.retain(|c| c.as_ref().is_some_and(|(_, p)| p.exists()));
+        if !inputs.is_empty() {
+            let maps = if inputs.len() > 1 { "maps" } else { "map" };
+            b.push(Block::Heading(3, "Input".into()));
+            b.push(Block::Grid {
+                rows: vec![inputs],
+                width: 160,
+            });
+            let rgb = render
+                .material
+                .as_ref()
+                .is_some_and(|m| m.albedo_channels == 3);
+            b.push(Block::Para(format!(
+                "The input {} over the image window (half-width {} MFP), in linear levels{}; \
+                 the renders below show the same window.",
+                maps,
+                render.half_width,
+                if rgb {
+                    " (per channel for the RGB albedo)"
+                } else {
+                    ""
+                }
+            )));
+        }
+    }
+    b.push(Block::Heading(3, "What the scene calls for".into()));
+    b.push(Block::table(
+        &["effect", "simulated", "why"],
+        doc.analysis
+            .effects
+            .iter()
+            .map(|e| {
+                vec![
+                    e.name.to_string(),
+                    if e.needed { "yes" } else { "skipped" }.into(),
+                    e.detail.clone(),
+                ]
+            })
+            .collect(),
+    ));
     match &doc.savings {
         Some(sv) => {
             b.push(Block::Para(format!(
@@ -681,125 +760,45 @@ pub fn report_blocks(doc: &CompareDoc, out: &Path) -> Vec<Block> {
                     .collect(),
             ));
         }
-        None => b.push(Block::Para(
-            "The skips above are already implied by how the scene is written (a grey map, no \
-             density map, one light kind): the renderer avoids no further work here, so no \
-             second render was timed."
-                .into(),
-        )),
+        None => b.push(Block::Para(no_savings_text(doc))),
     }
     for pass in &render.passes {
-        let tag = &pass.tag;
-        let dir = out.join(tag);
-        let names: Vec<&str> = pass.methods.iter().map(|m| m.method.name()).collect();
-        let white = pass.white_point;
-        b.push(Block::Heading(
-            3,
-            match pass.density {
-                Some(r) => format!("Pass `{tag}` (ρ = {r})"),
-                None => "Images".into(),
-            },
-        ));
-        b.push(Block::Images {
-            items: names
-                .iter()
-                .map(|n| (n.to_string(), dir.join(format!("{n}.png"))))
-                .collect(),
-            width: 160,
-        });
-        let diffs: Vec<(String, PathBuf)> = names
-            .iter()
-            .filter(|n| **n != "reference" && dir.join(format!("{n}_diff.png")).exists())
-            .map(|n| {
-                (
-                    format!("{n} − reference"),
-                    dir.join(format!("{n}_diff.png")),
-                )
-            })
-            .collect();
-        if !diffs.is_empty() {
-            b.push(Block::Images {
-                items: diffs,
-                width: 160,
-            });
-            b.push(Block::Figure {
-                caption: format!(
-                    "signed difference, channel mean: blue −{0:.4} … white 0 … red +{0:.4} \
-                     (±25 % of the white point {1:.4})",
-                    0.25 * white,
-                    white
-                ),
-                path: out.join("colorbar.png"),
-            });
-        }
-        let channels = pass
-            .methods
-            .iter()
-            .find_map(|m| m.metrics.as_ref().map(|m| m.channels.len()))
-            .unwrap_or(0);
-        let names_c: Vec<&str> = if channels == 3 {
-            vec!["R", "G", "B"]
-        } else {
-            vec!["Y"]
-        };
-        let mut header: Vec<String> = ["method", "time [s]", "set-up [s]", "rel RMSE", "rel bias"]
-            .map(String::from)
-            .into();
-        if channels > 1 {
-            header.extend(names_c.iter().map(|c| format!("RMSE {c}")));
-        }
-        b.push(Block::Table {
-            header,
-            rows: pass
-                .methods
-                .iter()
-                .map(|m| {
-                    let mt = m.metrics.as_ref();
-                    let mut row = vec![
-                        m.method.name().to_string(),
-                        num(Some(m.wall_s)),
-                        num(Some(m.setup_s)),
-                        err(mt.map(|x| x.rel_rmse)),
-                        pct(mt.map(|x| x.rel_bias)),
-                    ];
-                    if channels > 1 {
-                        row.extend(
-                            (0..channels).map(|c| {
-                                err(mt.and_then(|x| x.channels.get(c)).map(|x| x.rel_rmse))
-                            }),
-                        );
-                    }
-                    row
-                })
-                .collect(),
-        });
+        b.extend(pass_blocks(pass, out));
     }
-    b.push(Block::Para(
-        "rel RMSE = √(max(0, Σ(m − r)² − Σ(σ_m² + σ_r²)) / Σr²) over pixels (and channels): \
-         both images' own noise subtracted, so it measures the method's bias pattern \
-         (\"< noise\": below what the two images' noise can resolve; render more samples and \
-         reference paths to resolve it). rel bias = Σ(m − r)/Σr."
-            .into(),
-    ));
     let curves = &doc.curves;
     if !curves.curves.is_empty() {
-        b.push(Block::Heading(3, "What accuracy costs in time".into()));
+        let first = render.passes.first();
+        b.push(Block::Heading(
+            3,
+            match first.and_then(|p| p.density.map(|r| (p, r))) {
+                Some((p, r)) if render.passes.len() > 1 => {
+                    format!("What accuracy costs in time (pass `{}`, ρ = {r})", p.tag)
+                }
+                _ => "What accuracy costs in time".into(),
+            },
+        ));
         b.push(Block::Figure {
             caption: format!(
-                "error vs wall time against a truth of {} paths ({:.1} s); reference dashed",
-                curves.truth_paths.unwrap_or(0),
+                "relative RMSE against a truth of {} reference paths ({:.2} s, independent \
+                 seed), each image's own noise included, against the render time of each \
+                 budget (set-up excluded); the reference dashed; each marker is labelled with \
+                 its budget: spp for the models, paths for the reference",
+                count(curves.truth_paths.unwrap_or(0)),
                 curves.truth_wall_s.unwrap_or(0.0)
             ),
             path: out.join("error_time.png"),
         });
+        b.push(Block::Para(setup_text(&curves.curves)));
         b.push(Block::table(
             &[
                 "method",
                 "spp",
-                "time [s]",
+                "render [s]",
+                "set-up [s]",
                 "rel RMSE (noise included)",
-                "reference time to same error [s]",
+                "reference render time to same error [s]",
                 "speed-up",
+                "speed-up with set-up",
                 "error floor",
             ],
             curves
@@ -809,40 +808,479 @@ pub fn report_blocks(doc: &CompareDoc, out: &Path) -> Vec<Block> {
                     vec![
                         p.method.name().to_string(),
                         p.budget.to_string(),
-                        num(Some(p.wall_s)),
+                        num(Some(p.render_s())),
+                        num(Some(p.setup_s)),
                         pct(Some(p.rel_rmse)),
                         num(Some(p.reference_s)),
-                        format!("{:.1}×", p.ratio),
+                        format!("{:.2}×", p.ratio),
+                        format!("{:.2}×", p.ratio_with_setup()),
                         pct(Some(p.floor)),
                     ]
                 })
                 .collect(),
         ));
         b.push(Block::Para(
-            "Per model: the budget where it beats brute force by the most. The reference's time \
-             to the same error is read off its curve (log-log interpolation; beyond its points, \
-             e ∝ t^(−1/2)). Errors here include each image's own noise (that is what its time \
-             buys); the floor is the model's lowest error over its budgets."
+            "Per model: the budget where it beats brute force by the most at render time. The \
+             reference's time to the same error is read off its curve (log-log interpolation; \
+             beyond its points, e ∝ t^(−1/2)); a speed-up below 1× means the reference is \
+             faster at that error. The floor is the model's lowest error over its budgets."
                 .into(),
         ));
     }
     b
 }
 
-/// The light's kind in words.
-fn light_name(kind: &crate::render::scene::LightKind) -> &'static str {
-    match kind {
-        crate::render::scene::LightKind::Collimated => "collimated",
-        crate::render::scene::LightKind::Diffuse => "diffuse",
+/// One pass's images, difference images and error table.
+fn pass_blocks(pass: &super::render::PassDoc, out: &Path) -> Vec<Block> {
+    use super::report::{err, num, pct};
+    let dir = out.join(&pass.tag);
+    let white = pass.white_point;
+    let mut b = vec![Block::Heading(
+        3,
+        match pass.density {
+            Some(r) => format!("Pass `{}` (ρ = {r})", pass.tag),
+            None => "Images".into(),
+        },
+    )];
+    let image = |name: String, file: String| {
+        let path = dir.join(file);
+        path.exists().then_some((name, path))
+    };
+    let top: Vec<_> = pass
+        .methods
+        .iter()
+        .map(|m| image(m.method.name().into(), format!("{}.png", m.method.name())))
+        .collect();
+    // Each difference under its method; the reference's cell stays empty.
+    let diffs: Vec<_> = pass
+        .methods
+        .iter()
+        .map(|m| match m.method {
+            Target::Reference => None,
+            Target::Model(_) => {
+                let n = m.method.name();
+                image(format!("{n} − reference"), format!("{n}_diff.png"))
+            }
+        })
+        .collect();
+    let any_diff = diffs.iter().any(Option::is_some);
+    let mut rows = vec![top];
+    if any_diff {
+        rows.push(diffs);
+    }
+    b.push(Block::Grid { rows, width: 160 });
+    if any_diff {
+        b.push(Block::Figure {
+            caption: format!(
+                "signed difference to the reference, channel mean: blue −{0:.4} … white 0 … red \
+                 +{0:.4} (±25 % of the white point {1:.4}); images tone-mapped to the white \
+                 point (the reference's 99.5th percentile)",
+                0.25 * white,
+                white
+            ),
+            path: out.join("colorbar.png"),
+        });
+    }
+    let channels = pass
+        .methods
+        .iter()
+        .find_map(|m| m.metrics.as_ref().map(|m| m.channels.len()))
+        .unwrap_or(0);
+    let mut header: Vec<String> = [
+        "method",
+        "time [s]",
+        "of it set-up [s]",
+        "rel RMSE (noise subtracted)",
+        "rel bias",
+    ]
+    .map(String::from)
+    .into();
+    if channels == 3 {
+        header.extend(["R", "G", "B"].iter().map(|c| format!("rel RMSE {c}")));
+    }
+    b.push(Block::Table {
+        header,
+        rows: pass
+            .methods
+            .iter()
+            .map(|m| {
+                let mt = m.metrics.as_ref();
+                let mut row = vec![
+                    m.method.name().to_string(),
+                    num(Some(m.wall_s)),
+                    num(Some(m.setup_s)),
+                    err(mt.map(|x| x.rel_rmse)),
+                    pct(mt.map(|x| x.rel_bias)),
+                ];
+                if channels == 3 {
+                    row.extend(
+                        (0..channels)
+                            .map(|c| err(mt.and_then(|x| x.channels.get(c)).map(|x| x.rel_rmse))),
+                    );
+                }
+                row
+            })
+            .collect(),
+    });
+    b
+}
+
+/// `v` to three decimals (a texel value in the text).
+fn short(v: f64) -> f64 {
+    (v * 1e3).round() / 1e3
+}
+
+/// "α ∈ [lo, hi]", or "α = v" for a single value (three decimals).
+fn interval(name: &str, [lo, hi]: [f64; 2]) -> String {
+    let (lo, hi) = (short(lo), short(hi));
+    if lo == hi {
+        format!("{name} = {lo}")
+    } else {
+        format!("{name} ∈ [{lo}, {hi}]")
     }
 }
 
-/// The observable in words.
-fn observable_name(o: crate::render::scene::Observable) -> &'static str {
-    match o {
-        crate::render::scene::Observable::Exitance => "exitance",
-        crate::render::scene::Observable::Radiance => "radiance",
+/// The albedo preview's caption.
+fn albedo_caption(doc: &CompareDoc) -> String {
+    match &doc.render.material {
+        Some(m) => format!(
+            "albedo (input{}): {}; black 0, white 1",
+            match (m.albedo_channels, m.grey) {
+                (1, _) => ", grey",
+                (_, true) => ", RGB, three identical channels",
+                _ => ", RGB",
+            },
+            interval("α", m.albedo_range)
+        ),
+        None => "albedo α (input); black 0, white 1".into(),
     }
+}
+
+/// The scene in one paragraph, every phrase from the documents.
+fn scene_text(doc: &CompareDoc) -> String {
+    let r = &doc.render;
+    let light = match r.light.kind {
+        crate::render::scene::LightKind::Collimated => "collimated (normal incidence)",
+        crate::render::scene::LightKind::Diffuse => "diffuse",
+    };
+    let material = match &r.material {
+        Some(m) => {
+            let albedo = match (m.albedo_channels, m.grey) {
+                (1, _) => "a grey albedo (one channel)".to_string(),
+                (_, true) => "an RGB albedo of three identical channels (grey)".to_string(),
+                _ => "an RGB albedo (three different channels)".to_string(),
+            };
+            let range = interval("α", m.albedo_range);
+            let density = match &m.density {
+                super::render::DensitySource::Unit => "no density map (ρ = 1)".to_string(),
+                super::render::DensitySource::Map { range } if range[0] == range[1] => {
+                    format!("a constant density map ({})", interval("ρ", *range))
+                }
+                super::render::DensitySource::Map { range } => {
+                    format!("a density map with {}", interval("ρ", *range))
+                }
+                super::render::DensitySource::Sweep { values } => format!(
+                    "a density sweep, ρ = {} (one pass each)",
+                    crate::render::analysis::list(values)
+                ),
+            };
+            format!(" Material: {albedo} with {range}; {density}.")
+        }
+        None => String::new(),
+    };
+    format!(
+        "Scene file `{}`: {}² pixels over a window of half-width {} MFP; a {light} disk light of \
+         radius {} MFP; observable {}.{material} Main render: {} spp per model, {} sampling, \
+         variant `{}`; reference {} paths; seed {}. Commit `{}`.",
+        r.scene.display(),
+        r.resolution,
+        r.half_width,
+        r.light.radius,
+        match r.observable {
+            crate::render::scene::Observable::Exitance => "exitance",
+            crate::render::scene::Observable::Radiance => "radiance",
+        },
+        r.spp,
+        r.sampling.name(),
+        match r.variant.as_str() {
+            "" => "default: density-scaled, vertex kernels, one pass".to_string(),
+            v => v.trim_start_matches('+').to_string(),
+        },
+        count(r.reference_paths),
+        r.seed,
+        r.provenance.git_commit.as_deref().unwrap_or("unknown"),
+    )
+}
+
+/// Why no second render was timed, from what was skipped and why.
+fn no_savings_text(doc: &CompareDoc) -> String {
+    if doc.analysis.skips_work() {
+        return "What the skips save was not measured here (no second render with the analysis \
+                off was asked for)."
+            .into();
+    }
+    let material = doc.render.material.as_ref();
+    let mut facts = Vec::new();
+    for e in doc.analysis.skipped() {
+        match e.name {
+            EffectKind::RgbChannels => facts.push("a one-channel albedo".to_string()),
+            EffectKind::DensityPyramid => facts.push(
+                match material.map(|m| &m.density) {
+                    Some(super::render::DensitySource::Sweep { .. }) => {
+                        "a constant density per pass (a sweep)"
+                    }
+                    _ => "no density map",
+                }
+                .to_string(),
+            ),
+            EffectKind::CollimatedProfile | EffectKind::DiffuseProfile => facts.push(format!(
+                "a {} light, so one basis",
+                match doc.render.light.kind {
+                    crate::render::scene::LightKind::Collimated => "collimated",
+                    crate::render::scene::LightKind::Diffuse => "diffuse",
+                }
+            )),
+            EffectKind::AlbedoAggregation | EffectKind::KernelSimulation => {}
+        }
+    }
+    if facts.is_empty() {
+        "The analysis skips nothing the full renderer would do here, so no second render was \
+         timed."
+            .into()
+    } else {
+        format!(
+            "Each skip of the analysis above follows from how the scene is written ({}): the \
+             full renderer would do the same work, so no second render was timed.",
+            facts.join(", ")
+        )
+    }
+}
+
+/// A duration in words: "0.25 ms", "6.3 ms", "34 ms", "1.25 s".
+fn secs(s: f64) -> String {
+    if !s.is_finite() {
+        "—".into()
+    } else if s < 0.001 {
+        format!("{:.2} ms", 1e3 * s)
+    } else if s < 0.01 {
+        format!("{:.1} ms", 1e3 * s)
+    } else if s < 1.0 {
+        format!("{:.0} ms", 1e3 * s)
+    } else {
+        format!("{s:.2} s")
+    }
+}
+
+/// The middle value of `v` (the mean of the middle two).
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    match v.len() {
+        0 => f64::NAN,
+        n if n % 2 == 1 => v[n / 2],
+        n => 0.5 * (v[n / 2 - 1] + v[n / 2]),
+    }
+}
+
+/// The models' set-up times, which the plotted times leave out.
+fn setup_text(curves: &[Curve]) -> String {
+    let setups: Vec<String> = curves
+        .iter()
+        .filter(|c| c.method != Target::Reference)
+        .map(|c| {
+            let s = median(c.points.iter().map(|p| p.setup_s).collect());
+            format!("{} {}", c.method.name(), secs(s))
+        })
+        .collect();
+    if setups.is_empty() {
+        return "Times are the reference's render times (it has no set-up).".into();
+    }
+    format!(
+        "Set-up time, not in the plotted times (what a model prepares once per scene and \
+         material before its first sample, such as the kernel methods' pyramids; median over \
+         the budgets): {}. The reference has no set-up.",
+        setups.join(", ")
+    )
+}
+
+/// The one-line verdict: the most accurate method of each pass against the
+/// reference, and learned's speed-up over the reference at equal error.
+pub fn verdict(doc: &CompareDoc) -> String {
+    use super::report::{err, pct};
+    let best = |pass: &super::render::PassDoc| {
+        let mut ranked: Vec<(&str, f64, f64)> = pass
+            .methods
+            .iter()
+            .filter_map(|m| {
+                let x = m.metrics.as_ref()?;
+                x.rel_rmse
+                    .is_finite()
+                    .then_some((m.method.name(), x.rel_rmse, x.rel_bias))
+            })
+            .collect();
+        ranked.sort_by(|a, b| a.1.total_cmp(&b.1));
+        ranked
+    };
+    let passes = &doc.render.passes;
+    let ranked: Vec<_> = passes.iter().map(best).collect();
+    let mut text = match ranked.first() {
+        None => "no model method was measured against the reference".to_string(),
+        Some(r) if r.is_empty() => "no model method was measured against the reference".into(),
+        Some(_) if passes.len() > 1 => {
+            let winners: Vec<&str> = ranked
+                .iter()
+                .filter_map(|r| r.first().map(|w| w.0))
+                .collect();
+            if winners.iter().all(|w| *w == winners[0]) {
+                let errors: Vec<String> = ranked
+                    .iter()
+                    .zip(passes)
+                    .filter_map(|(r, p)| {
+                        let w = r.first()?;
+                        Some(format!(
+                            "{} at ρ = {}",
+                            err(Some(w.1)),
+                            p.density.map_or("the map".into(), |d| d.to_string())
+                        ))
+                    })
+                    .collect();
+                format!(
+                    "{} is the most accurate against the reference in all {} passes (rel RMSE \
+                     {})",
+                    winners[0],
+                    passes.len(),
+                    errors.join(", ")
+                )
+            } else {
+                let each: Vec<String> = ranked
+                    .iter()
+                    .zip(passes)
+                    .filter_map(|(r, p)| {
+                        let w = r.first()?;
+                        Some(format!(
+                            "{} at ρ = {} ({})",
+                            w.0,
+                            p.density.map_or("the map".into(), |d| d.to_string()),
+                            err(Some(w.1))
+                        ))
+                    })
+                    .collect();
+                format!(
+                    "the most accurate against the reference: {}",
+                    each.join(", ")
+                )
+            }
+        }
+        Some(r) => {
+            let tied: Vec<&str> = r.iter().filter(|m| m.1 == 0.0).map(|m| m.0).collect();
+            let head = if tied.len() > 1 {
+                format!(
+                    "{} agree with the reference to within its noise",
+                    crate::render::analysis::list_names(&tied)
+                )
+            } else {
+                format!(
+                    "{} is the most accurate against the reference (rel RMSE {}, bias {})",
+                    r[0].0,
+                    err(Some(r[0].1)),
+                    pct(Some(r[0].2))
+                )
+            };
+            match r.get(tied.len().max(1)) {
+                Some(next) => format!("{head}; next {} ({})", next.0, err(Some(next.1))),
+                None => head,
+            }
+        }
+    };
+    let learned = doc
+        .curves
+        .speedups
+        .iter()
+        .find(|s| s.method == Target::Model(Method::Learned));
+    if let Some(s) = learned {
+        let how = |ratio: f64| {
+            if ratio >= 1.0 {
+                format!("{ratio:.1}× faster")
+            } else {
+                format!("{:.1}× slower", 1.0 / ratio)
+            }
+        };
+        let pass = match passes.first() {
+            Some(p) if passes.len() > 1 => format!(" (pass `{}`)", p.tag),
+            _ => String::new(),
+        };
+        text.push_str(&format!(
+            ". At equal error{pass} learned renders {} than the reference ({} error at {} spp: \
+             {} against the reference's {}; with its {} set-up counted, {})",
+            how(s.ratio),
+            pct(Some(s.rel_rmse)),
+            s.budget,
+            secs(s.render_s()),
+            secs(s.reference_s),
+            secs(s.setup_s),
+            how(s.ratio_with_setup()),
+        ));
+    }
+    text.push('.');
+    text
+}
+
+/// The terms of the compare reports, once per page.
+pub fn glossary() -> Vec<Block> {
+    let rows = [
+        (
+            "rel RMSE (noise subtracted)",
+            "√(max(0, Σ(m − r)² − Σ(σ_m² + σ_r²)) / Σr²) over the pixels and channels of a \
+             method's image m against the reference r, with σ² each pixel's estimated variance: \
+             both images' own noise is subtracted, so it measures the method's bias pattern, \
+             not its noise.",
+        ),
+        (
+            "\"< noise\"",
+            "the noise-subtracted error is zero: the two images differ by no more than their \
+             noise explains; more samples and reference paths would resolve a smaller error.",
+        ),
+        (
+            "rel bias",
+            "Σ(m − r) / Σr: the mean relative offset of the method's image (positive: brighter \
+             than the reference).",
+        ),
+        (
+            "rel RMSE (noise included)",
+            "in the error-vs-time curves: against a truth (the reference at a high budget, \
+             independent seed) with only the truth's variance subtracted; the method's own noise \
+             stays in, since that is what its time buys.",
+        ),
+        (
+            "spp",
+            "samples per pixel: the light samples a model method takes per pixel (the \
+             reference's budget is its number of paths).",
+        ),
+        (
+            "set-up time",
+            "what a model prepares once per scene and material before its first sample (the \
+             kernel methods build their albedo and density pyramids); the tables give it beside \
+             the time, the curves leave it out.",
+        ),
+        (
+            "speed-up at equal error",
+            "the reference's render time to reach a model's error (read off the reference's \
+             curve) over the model's render time at that error; above 1× the model is faster. \
+             \"with set-up\" adds the model's set-up to its time.",
+        ),
+        (
+            "error floor",
+            "a model's lowest error over its budgets: where more samples stop helping (its bias).",
+        ),
+    ];
+    vec![
+        Block::Heading(2, "Terms".into()),
+        Block::table(
+            &["term", "meaning"],
+            rows.iter()
+                .map(|(t, m)| vec![t.to_string(), m.to_string()])
+                .collect(),
+        ),
+    ]
 }
 
 #[cfg(test)]
@@ -862,6 +1300,14 @@ mod tests {
                 })
                 .collect(),
         }
+    }
+
+    #[test]
+    fn budgets_read_as_counts() {
+        assert_eq!(count(4_000_000), "4e6");
+        assert_eq!(count(10_000), "1e4");
+        assert_eq!(count(2_500_000), "2500000");
+        assert_eq!((count(64), count(0)), ("64".into(), "0".into()));
     }
 
     #[test]

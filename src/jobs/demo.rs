@@ -29,11 +29,14 @@ pub struct DemoReport {
     pub manual: crate::metamodel::kernel::Gmm,
 }
 
+/// The albedo of the demo's profile.
+pub const DEMO_ALBEDO: f64 = 0.9;
+
 /// Simulates `paths` paths of the default medium (η = 1.5, g = 0.3) at
 /// α = 0.9 with a pencil beam and writes `profile.json` and `profile.png`
 /// to `out`; compares `models` with it.
 pub fn run(out: &Path, paths: u64, models: &Models, progress: bool) -> Result<DemoReport> {
-    let alpha = 0.9;
+    let alpha = DEMO_ALBEDO;
     let config = ProfileConfig {
         medium: Medium::default_with_albedo(alpha)?,
         source: Source::Pencil,
@@ -101,20 +104,28 @@ pub fn compare_scenes(
         measure_savings: true,
     };
     let mut done = Vec::new();
+    let names: Vec<String> = DEMO_SCENES
+        .iter()
+        .map(|p| {
+            let stem = Path::new(p).file_stem().map(|s| s.to_string_lossy());
+            format!("`{}`", stem.unwrap_or_default())
+        })
+        .collect();
     let mut blocks = vec![
-        Block::Para(
-            "The end-to-end demo on the shipped data: the basis BSSRDF \
-             and the kernel meta-model built into svkernel (the same as \
-             `data/profiles/basis.json` and `metamodel.json`) render the `stripes` and `checker` scenes with \
-             every method; the brute-force reference (the heterogeneous walk) is the ground \
-             truth. Produced by `cargo run --release -- demo`; one scene alone: \
-             `svkernel compare stripes`."
-                .into(),
-        ),
+        Block::Para(format!(
+            "The end-to-end demo on the shipped data: the basis BSSRDF and the kernel \
+             meta-model built into svkernel (the same as `data/profiles/basis.json` and \
+             `metamodel.json`) render the {} scenes with every method; the brute-force \
+             reference (the heterogeneous walk) is the ground truth. Produced by \
+             `svkernel demo`; one scene alone: `svkernel compare {}`.",
+            crate::render::analysis::list_names(&names),
+            DEMO_SCENES[0]
+        )),
         Block::Figure {
-            caption: "the demo's profile check: p(r) = 2πr·R(r) at α = 0.9, single (R₁) and \
-                      multiple (Rₘ) scattering"
-                .into(),
+            caption: format!(
+                "the demo's profile check: p(r) = 2πr·R(r) at α = {DEMO_ALBEDO}, single (R₁) \
+                 and multiple (Rₘ) scattering"
+            ),
             path: out.join("profile.png"),
         },
     ];
@@ -133,6 +144,7 @@ pub fn compare_scenes(
         blocks.extend(c.blocks.iter().cloned());
         done.push((scene.name.clone(), c));
     }
+    blocks.extend(crate::jobs::compare::glossary());
     write_report(out, "index", "svkernel demo", &blocks)?;
     Ok(done)
 }

@@ -24,10 +24,11 @@ pub enum Block {
         header: Vec<String>,
         rows: Vec<Vec<String>>,
     },
-    /// Images side by side with captions, each `width` CSS pixels wide
+    /// Images in aligned columns: rows of cells, each an image with its
+    /// caption or empty (`None`), each image `width` CSS pixels wide
     /// (pixelated scaling) in HTML. Paths are files on disk.
-    Images {
-        items: Vec<(String, PathBuf)>,
+    Grid {
+        rows: Vec<Vec<Option<(String, PathBuf)>>>,
         width: u32,
     },
     /// One wide figure (a plot or a contact sheet).
@@ -82,7 +83,8 @@ padding:0 1em;color:#222}table{border-collapse:collapse;margin:.5em 0 1.5em}\
 td,th{border:1px solid #ccc;padding:.25em .6em;text-align:left}\
 th{background:#f3f3f3}td.n{text-align:right}\
 figure{display:inline-block;margin:0 6px 6px 0;text-align:center;font-size:.85em}\
-img.tile{image-rendering:pixelated}pre{background:#f6f6f6;padding:.6em;overflow-x:auto}\
+table.grid{border-collapse:separate;margin:0 0 .5em}table.grid td{border:none;padding:0 6px 0 0;\
+vertical-align:top}table.grid figure{margin:0}img.tile{image-rendering:pixelated;outline:1px solid #ccc}pre{background:#f6f6f6;padding:.6em;overflow-x:auto}\
 code{background:#f3f3f3;padding:0 .2em}";
 
 /// The blocks as one self-contained HTML page.
@@ -119,19 +121,27 @@ pub fn to_html(title: &str, blocks: &[Block]) -> Result<String> {
                 }
                 h.push_str("</table>\n");
             }
-            Block::Images { items, width } => {
-                h.push_str("<div>");
-                for (caption, path) in items {
-                    let _ = write!(
-                        h,
-                        "<figure><img class=\"tile\" width=\"{width}\" src=\"{}\" alt=\"{}\">\
-                         <figcaption>{}</figcaption></figure>",
-                        data_uri(path)?,
-                        escape(caption),
-                        inline(caption)
-                    );
+            Block::Grid { rows, width } => {
+                h.push_str("<table class=\"grid\">");
+                for row in rows {
+                    h.push_str("<tr>");
+                    for cell in row {
+                        let _ = write!(h, "<td style=\"width:{width}px\">");
+                        if let Some((caption, path)) = cell {
+                            let _ = write!(
+                                h,
+                                "<figure><img class=\"tile\" width=\"{width}\" src=\"{}\" \
+                                 alt=\"{}\"><figcaption>{}</figcaption></figure>",
+                                data_uri(path)?,
+                                escape(caption),
+                                inline(caption)
+                            );
+                        }
+                        h.push_str("</td>");
+                    }
+                    h.push_str("</tr>\n");
                 }
-                h.push_str("</div>\n");
+                h.push_str("</table>\n");
             }
             Block::Figure { caption, path } => {
                 let _ = writeln!(
@@ -187,15 +197,28 @@ pub fn to_markdown(title: &str, blocks: &[Block], base: &Path) -> String {
                 }
                 m.push('\n');
             }
-            Block::Images { items, .. } => {
-                let head: Vec<String> = items.iter().map(|(c, _)| c.clone()).collect();
-                m.push_str(&cells(&head));
-                m.push_str(&cells(&vec![":-:".to_string(); items.len()]));
-                let imgs: Vec<String> = items
-                    .iter()
-                    .map(|(c, p)| format!("![{c}]({})", relative(p, base)))
-                    .collect();
-                m.push_str(&cells(&imgs));
+            Block::Grid { rows, .. } => {
+                // Each grid row as a row of captions over a row of images;
+                // the first row's captions are the table's header.
+                for (k, row) in rows.iter().enumerate() {
+                    let captions: Vec<String> = row
+                        .iter()
+                        .map(|c| c.as_ref().map_or(String::new(), |(c, _)| c.clone()))
+                        .collect();
+                    m.push_str(&cells(&captions));
+                    if k == 0 {
+                        m.push_str(&cells(&vec![":-:".to_string(); row.len()]));
+                    }
+                    let imgs: Vec<String> = row
+                        .iter()
+                        .map(|c| {
+                            c.as_ref().map_or(String::new(), |(c, p)| {
+                                format!("![{c}]({})", relative(p, base))
+                            })
+                        })
+                        .collect();
+                    m.push_str(&cells(&imgs));
+                }
                 m.push('\n');
             }
             Block::Figure { caption, path } => {
@@ -214,6 +237,9 @@ pub fn to_text(blocks: &[Block]) -> String {
     for b in blocks {
         match b {
             Block::Heading(level, text) => {
+                if !t.is_empty() {
+                    t.push('\n');
+                }
                 let _ = writeln!(t, "{} {text}", "#".repeat(*level as usize));
             }
             Block::Para(text) => {
@@ -245,7 +271,7 @@ pub fn to_text(blocks: &[Block]) -> String {
                     let _ = writeln!(t, "  {}", cells.join("  ").trim_end());
                 }
             }
-            Block::Code(_) | Block::Images { .. } | Block::Figure { .. } => {}
+            Block::Code(_) | Block::Grid { .. } | Block::Figure { .. } => {}
         }
     }
     t
@@ -316,8 +342,11 @@ mod tests {
                 header: vec!["method".into(), "rel RMSE".into()],
                 rows: vec![vec!["`learned`".into(), pct(Some(0.0342))]],
             },
-            Block::Images {
-                items: vec![("reference".into(), png.clone())],
+            Block::Grid {
+                rows: vec![
+                    vec![Some(("reference".into(), png.clone())), None],
+                    vec![None, Some(("again".into(), png.clone()))],
+                ],
                 width: 64,
             },
         ];
@@ -328,8 +357,14 @@ mod tests {
         assert!(!h.contains("sub/a.png"), "no file links in HTML");
         assert!(h.contains("Errors &lt;&amp;&gt;") && h.contains("<code>learned</code>"));
         assert!(h.contains("3.4 %"));
+        // The grid's columns line up: an empty cell keeps its place.
+        assert!(h.contains("<tr><td style=\"width:64px\"></td><td"), "{h}");
         let md = std::fs::read_to_string(dir.join("r.md")).unwrap();
-        assert!(md.contains("![reference](sub/a.png)"), "{md}");
+        assert!(md.contains("| ![reference](sub/a.png) |  |"), "{md}");
+        assert!(
+            md.contains("|  | again |\n|  | ![again](sub/a.png) |"),
+            "{md}"
+        );
         assert!(md.contains("| `learned` | 3.4 % |"), "{md}");
         assert!(
             md.contains("| :-- | --: |"),
