@@ -766,3 +766,55 @@ fn a_closed_stdout_is_no_panic() {
         "{err}"
     );
 }
+
+/// `fit kernels` with its default output writes under `out/fit/` of the
+/// folder it runs in, never over the shipped model.
+#[test]
+fn fit_kernels_writes_under_out_by_default() {
+    let d = tmpdir("fit-default");
+    let tally = d.join("k.json");
+    let o = bin()
+        .args([
+            "simulate",
+            "kernels",
+            "--albedos",
+            "0.8,0.9,0.95",
+            "--distances",
+            "0.5,1,2",
+            "--paths",
+            "1e6",
+            "--out",
+        ])
+        .arg(&tally)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let shipped = std::fs::read(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/data/profiles/metamodel.json"
+    ))
+    .unwrap();
+    let o = bin()
+        .current_dir(&d)
+        .args([
+            "fit",
+            "kernels",
+            "--components",
+            "1",
+            "--degree",
+            "1,1",
+            "--in",
+        ])
+        .arg(&tally)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(d.join("out/fit/metamodel.json").exists());
+    assert!(d.join("out/fit/metamodel_report/report.json").exists());
+    let after = std::fs::read(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/data/profiles/metamodel.json"
+    ))
+    .unwrap();
+    assert_eq!(shipped, after, "the shipped meta-model changed");
+}

@@ -1259,7 +1259,9 @@ pub fn glossary() -> Vec<Block> {
             "set-up time",
             "what a model prepares once per scene and material before its first sample (the \
              kernel methods build their albedo and density pyramids); the tables give it beside \
-             the time, the curves leave it out.",
+             the time, the curves leave it out. The material is shared: `manual` and `learned` \
+             read the same pyramids, built by whichever renders first, and the budgets of the \
+             curves reuse them.",
         ),
         (
             "speed-up at equal error",
