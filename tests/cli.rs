@@ -818,3 +818,42 @@ fn fit_kernels_writes_under_out_by_default() {
     .unwrap();
     assert_eq!(shipped, after, "the shipped meta-model changed");
 }
+
+/// From a folder with no `data/` and no `scenes/`: the built-in models and
+/// scenes serve `kernel`, `profile`, `scene` and `render`.
+#[test]
+fn commands_work_from_an_empty_folder() {
+    let d = tmpdir("empty-folder");
+    let run = |args: &[&str]| {
+        let o = bin().current_dir(&d).args(args).output().unwrap();
+        assert!(
+            o.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    };
+    let k: serde_json::Value =
+        serde_json::from_str(&run(&["kernel", "--d", "1", "--albedo", "0.9"])).unwrap();
+    assert_eq!(k["model"], "(built-in metamodel.json)");
+    let p: serde_json::Value = serde_json::from_str(&run(&["profile", "--albedo", "0.9"])).unwrap();
+    assert!(p["R_d"].as_f64().unwrap() > 0.1);
+    let toml = run(&["scene", "checker"]);
+    assert!(toml.contains("name = \"checker\""));
+    run(&[
+        "render",
+        "checker",
+        "--method",
+        "reference,learned",
+        "--spp",
+        "2",
+        "--paths",
+        "1e3",
+        "--resolution",
+        "8",
+        "--out",
+        "r",
+    ]);
+    assert!(d.join("r/main/learned.exr").exists());
+    assert!(!d.join("data").exists() && !d.join("out").exists());
+}

@@ -91,7 +91,7 @@ impl BasisFit<'_> {
     /// The model this parameter vector describes.
     pub fn model(
         &self,
-        incidence: String,
+        incidence: crate::forward::medium::Incidence,
         single: ExpMixture,
         albedo_range: (f64, f64),
         eta: f64,
@@ -358,7 +358,7 @@ pub fn fit_basis(
     let (solved, joint) = solve("basis (joint, all albedos)", problem, opts)?;
     let range = (data[0].alpha, data[data.len() - 1].alpha);
     let model = solved.model(
-        c0.source.to_string(),
+        c0.source.incidence(),
         single,
         range,
         c0.medium.eta,

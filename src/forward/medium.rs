@@ -111,7 +111,36 @@ impl Source {
     /// Whether every path arrives at normal incidence; then the entry Fresnel
     /// transmittance is one constant, applied as a weight instead of sampled.
     pub fn is_normal_incidence(&self) -> bool {
-        !matches!(self, Source::Diffuse { .. })
+        self.incidence() == Incidence::Pencil
+    }
+
+    /// The directions the light arrives from.
+    pub fn incidence(&self) -> Incidence {
+        match self {
+            Source::Pencil | Source::Collimated { .. } => Incidence::Pencil,
+            Source::Diffuse { .. } => Incidence::Diffuse,
+        }
+    }
+}
+
+/// The directions incident light arrives from: the one property of a
+/// source that a basis profile depends on (its spatial extent is convolved
+/// in by the renderer). Written `pencil` / `diffuse` in documents.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Incidence {
+    /// Normal incidence: a pencil beam, or a collimated disk light.
+    Pencil,
+    /// Cosine-distributed directions (a diffuse light).
+    Diffuse,
+}
+
+impl Incidence {
+    pub fn name(self) -> &'static str {
+        match self {
+            Incidence::Pencil => "pencil",
+            Incidence::Diffuse => "diffuse",
+        }
     }
 }
 

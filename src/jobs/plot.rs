@@ -320,7 +320,7 @@ fn chart_size(series: &[Series]) -> (u32, u32) {
     (900 + legend_width(series), 600)
 }
 
-/// Draws an x–y chart to `path` (PNG, [`chart_size`]).
+/// Draws an x–y chart to `path` (PNG, sized by `chart_size`).
 pub fn chart(path: &Path, axes: &Axes, series: &[Series]) -> Result<()> {
     let r = chart_ranges(axes, series);
     png(path, chart_size(series), |root| {

@@ -390,21 +390,16 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
             LightKind::Collimated => (&m.basis, &m.basis_origin),
             LightKind::Diffuse => (&m.basis_diffuse, &m.basis_diffuse_origin),
         };
-        let want = match scene.light {
-            LightKind::Collimated => "pencil",
-            LightKind::Diffuse => "diffuse",
-        };
+        let want = scene.light.incidence();
         if model.incidence != want {
             return Err(Error::format(
                 path,
                 "incidence",
                 format!(
-                    "'{}', but the scene's {} light needs a basis fitted to '{want}' profiles",
-                    model.incidence,
-                    match scene.light {
-                        LightKind::Collimated => "collimated",
-                        LightKind::Diffuse => "diffuse",
-                    }
+                    "'{}', but the scene's {} light needs a basis fitted to '{}' profiles",
+                    model.incidence.name(),
+                    scene.light.name(),
+                    want.name()
                 ),
             ));
         }

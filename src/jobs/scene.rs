@@ -522,7 +522,365 @@ fn values_of(raw: &RawMap, key: &str, path: &Path) -> Result<Vec<Vec<f64>>> {
     Ok((0..3).map(|c| vec![rgb[0][c], rgb[1][c]]).collect())
 }
 
-/// Builds a map's channels on its texel grid.
+/// A map's kind with what it reads, validated: the typed form of
+/// [`RawMap`].
+#[derive(Clone, Debug, PartialEq)]
+enum MapSpec {
+    Constant(f64),
+    Rgb([f64; 3]),
+    /// R, G, B from three grey maps.
+    Channels(Vec<MapSpec>),
+    /// A texture file, relative to the scene file.
+    File {
+        file: PathBuf,
+        format: FileFormat,
+    },
+    /// A procedural pattern on `size` texels, blending `values` (per
+    /// channel: [a, b]).
+    Pattern {
+        pattern: Pattern,
+        size: [usize; 2],
+        values: Vec<Vec<f64>>,
+    },
+}
+
+/// How a texture file is read.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum FileFormat {
+    Npy,
+    Exr,
+    /// 8- or 16-bit PNG; `srgb`: decode the sRGB transfer to linear.
+    Png {
+        srgb: bool,
+    },
+}
+
+/// A procedural pattern and its sizes (MFP).
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Pattern {
+    /// Stripes of `width` across the direction `angle` (radians from +x).
+    Stripes {
+        width: f64,
+        angle: f64,
+    },
+    Checker {
+        cell: f64,
+    },
+    /// Linear in x over `length`, centred on the origin, clamped.
+    Ramp {
+        length: f64,
+    },
+    Dots {
+        spacing: f64,
+        radius: f64,
+    },
+    /// Thin lines and dots at three scales ([`complex_pattern`]).
+    Complex {
+        seed: u64,
+    },
+}
+
+impl Pattern {
+    /// Selector in [0, 1] at (x, y): 0 → values[0], 1 → values[1].
+    fn select(&self, x: f64, y: f64) -> f64 {
+        match *self {
+            Pattern::Stripes { width, angle } => {
+                let u = x * angle.cos() + y * angle.sin();
+                ((u / width).floor().rem_euclid(2.0) != 0.0) as u8 as f64
+            }
+            Pattern::Checker { cell } => {
+                (((x / cell).floor() + (y / cell).floor()).rem_euclid(2.0) != 0.0) as u8 as f64
+            }
+            Pattern::Ramp { length } => (x / length + 0.5).clamp(0.0, 1.0),
+            Pattern::Dots { spacing, radius } => {
+                let (dx, dy) = (
+                    x - spacing * (x / spacing).round(),
+                    y - spacing * (y / spacing).round(),
+                );
+                (dx.hypot(dy) < radius) as u8 as f64
+            }
+            Pattern::Complex { seed } => complex_pattern(seed, x, y),
+        }
+    }
+}
+
+impl MapSpec {
+    /// Validates a written map (`key` and `path` name it in errors): one
+    /// kind, only the keys that kind reads, values in their domains.
+    fn parse(raw: &RawMap, key: &str, default_size: usize, path: &Path) -> Result<MapSpec> {
+        let bad = |sub: &str, msg: String| Error::format(path, format!("{key}{sub}"), msg);
+        let kinds = [
+            raw.constant.is_some(),
+            raw.rgb.is_some(),
+            raw.pattern.is_some(),
+            raw.file.is_some(),
+            raw.channels.is_some(),
+        ];
+        if kinds.iter().filter(|k| **k).count() != 1 {
+            return Err(bad(
+                "",
+                "give exactly one of constant, rgb, pattern, file, channels".into(),
+            ));
+        }
+        // A key the map's kind does not read is an error, not silently
+        // ignored (e.g. `width` on a checker, whose cell would stay at its
+        // default).
+        let (what, takes): (String, &[&str]) = match (&raw.pattern, &raw.file) {
+            (Some(p), _) => (
+                format!("pattern \"{p}\""),
+                match p.as_str() {
+                    "stripes" => &["values", "size", "width", "angle"],
+                    "checker" => &["values", "size", "cell"],
+                    "ramp" => &["values", "size", "length"],
+                    "dots" => &["values", "size", "spacing", "radius"],
+                    "complex" => &["values", "size", "seed"],
+                    _ => &[
+                        "values", "size", "width", "angle", "cell", "length", "spacing", "radius",
+                        "seed",
+                    ],
+                },
+            ),
+            (None, Some(_)) => ("a file map".into(), &["transfer"]),
+            // A constant reads the same at every size: `size` is harmless.
+            _ if raw.constant.is_some() || raw.rgb.is_some() => {
+                ("a constant map".into(), &["size"])
+            }
+            _ => ("this map".into(), &[]),
+        };
+        let given = [
+            ("values", raw.values.is_some()),
+            ("width", raw.width.is_some()),
+            ("angle", raw.angle.is_some()),
+            ("cell", raw.cell.is_some()),
+            ("length", raw.length.is_some()),
+            ("spacing", raw.spacing.is_some()),
+            ("radius", raw.radius.is_some()),
+            ("seed", raw.seed.is_some()),
+            ("transfer", raw.transfer.is_some()),
+            ("size", raw.size.is_some()),
+        ];
+        if let Some((k, _)) = given.iter().find(|(k, on)| *on && !takes.contains(k)) {
+            let takes = if takes.is_empty() {
+                "no other key".to_string()
+            } else {
+                takes.join(", ")
+            };
+            return Err(bad(
+                &format!(".{k}"),
+                format!("not a key of {what} (it takes: {takes})"),
+            ));
+        }
+        if let Some(ch) = &raw.channels {
+            if ch.len() != 3 {
+                return Err(bad(
+                    ".channels",
+                    format!("needs three maps (R, G, B), found {}", ch.len()),
+                ));
+            }
+            return ch
+                .iter()
+                .enumerate()
+                .map(|(c, m)| {
+                    MapSpec::parse(m, &format!("{key}.channels[{c}]"), default_size, path)
+                })
+                .collect::<Result<_>>()
+                .map(MapSpec::Channels);
+        }
+        if let Some(c) = raw.constant {
+            return Ok(MapSpec::Constant(c));
+        }
+        if let Some(rgb) = raw.rgb {
+            return Ok(MapSpec::Rgb(rgb));
+        }
+        if let Some(file) = &raw.file {
+            let ext = file
+                .extension()
+                .map(|e| e.to_string_lossy().to_lowercase())
+                .unwrap_or_default();
+            // Any letter case: "sRGB", "Linear".
+            let lower = raw.transfer.as_ref().map(|t| t.to_ascii_lowercase());
+            let transfer = lower.as_deref();
+            match (ext.as_str(), transfer) {
+                ("png", Some("srgb" | "linear")) | ("npy" | "exr", None | Some("linear")) => {}
+                ("png", None) => {
+                    return Err(bad(
+                        ".transfer",
+                        "missing: a PNG map needs transfer = \"srgb\" or \"linear\"".into(),
+                    ));
+                }
+                ("png", Some(_)) => {
+                    return Err(bad(
+                        ".transfer",
+                        format!(
+                            "'{}': a PNG map needs transfer = \"srgb\" or \"linear\"",
+                            raw.transfer.as_deref().unwrap_or_default()
+                        ),
+                    ));
+                }
+                (_, Some(_)) => {
+                    return Err(bad(
+                        ".transfer",
+                        format!(
+                            "'{}': .npy and .exr maps hold linear values",
+                            raw.transfer.as_deref().unwrap_or_default()
+                        ),
+                    ));
+                }
+                _ => {}
+            }
+            let format = match ext.as_str() {
+                "npy" => FileFormat::Npy,
+                "exr" => FileFormat::Exr,
+                "png" => FileFormat::Png {
+                    srgb: transfer == Some("srgb"),
+                },
+                _ => {
+                    return Err(bad(
+                        ".file",
+                        format!("{}: expected a .npy, .exr or .png file", file.display()),
+                    ));
+                }
+            };
+            return Ok(MapSpec::File {
+                file: file.clone(),
+                format,
+            });
+        }
+        let [nx, ny] = raw.size.unwrap_or([default_size, default_size]);
+        if nx == 0 || ny == 0 || nx.checked_mul(ny).is_none_or(|n| n > 1 << 26) {
+            return Err(bad(
+                ".size",
+                format!("[{nx}, {ny}] must be positive and at most 2^26 texels"),
+            ));
+        }
+        let values = values_of(raw, key, path)?;
+        let positive = |name: &str, v: Option<f64>, default: f64| -> Result<f64> {
+            let v = v.unwrap_or(default);
+            if v > 0.0 && v.is_finite() {
+                Ok(v)
+            } else {
+                Err(bad(
+                    &format!(".{name}"),
+                    format!("{v} must be finite and > 0"),
+                ))
+            }
+        };
+        let finite = |name: &str, v: f64| -> Result<f64> {
+            if v.is_finite() {
+                Ok(v)
+            } else {
+                Err(bad(&format!(".{name}"), format!("{v} must be finite")))
+            }
+        };
+        let pattern = match raw.pattern.as_deref().unwrap_or_default() {
+            "stripes" => Pattern::Stripes {
+                width: positive("width", raw.width, 0.5)?,
+                angle: finite("angle", raw.angle.unwrap_or(0.0))?.to_radians(),
+            },
+            "checker" => Pattern::Checker {
+                cell: positive("cell", raw.cell, 0.5)?,
+            },
+            "ramp" => Pattern::Ramp {
+                length: positive("length", raw.length, 8.0)?,
+            },
+            "dots" => Pattern::Dots {
+                spacing: positive("spacing", raw.spacing, 1.0)?,
+                radius: positive("radius", raw.radius, 0.2)?,
+            },
+            "complex" => Pattern::Complex {
+                seed: raw.seed.unwrap_or(1),
+            },
+            p => {
+                return Err(bad(
+                    ".pattern",
+                    format!("unknown pattern '{p}' (stripes, checker, ramp, dots, complex)"),
+                ));
+            }
+        };
+        Ok(MapSpec::Pattern {
+            pattern,
+            size: [nx, ny],
+            values,
+        })
+    }
+
+    /// The map's channels on texels of size `texel`; files are read from
+    /// `dir` (errors name the scene file `path`, the key and the file).
+    fn build(&self, key: &str, texel: f64, dir: &Path, path: &Path) -> Result<Vec<TexelMap>> {
+        let bad = |sub: &str, msg: String| Error::format(path, format!("{key}{sub}"), msg);
+        match self {
+            MapSpec::Constant(c) => Ok(vec![TexelMap::new(1, 1, texel, vec![*c])?]),
+            MapSpec::Rgb(rgb) => rgb
+                .iter()
+                .map(|c| TexelMap::new(1, 1, texel, vec![*c]))
+                .collect(),
+            MapSpec::Channels(ch) => {
+                let mut out = Vec::new();
+                for (c, m) in ch.iter().enumerate() {
+                    let mut v = m.build(&format!("{key}.channels[{c}]"), texel, dir, path)?;
+                    if v.len() != 1 {
+                        return Err(bad(
+                            &format!(".channels[{c}]"),
+                            "each channel must be a grey map".into(),
+                        ));
+                    }
+                    out.push(v.remove(0));
+                }
+                Ok(out)
+            }
+            MapSpec::File { file, format } => {
+                let path_of = dir.join(file);
+                let loaded = match format {
+                    FileFormat::Npy => load_npy(&path_of, texel),
+                    FileFormat::Exr => load_exr(&path_of, texel),
+                    FileFormat::Png { srgb } => load_png(&path_of, texel, *srgb),
+                };
+                // Named by the scene file and key, and the map file.
+                loaded.map_err(|e| {
+                    let (msg, name) = (e.to_string(), path_of.display().to_string());
+                    bad(
+                        ".file",
+                        if msg.contains(&name) {
+                            msg
+                        } else {
+                            format!("{name}: {msg}")
+                        },
+                    )
+                })
+            }
+            MapSpec::Pattern {
+                pattern,
+                size: [nx, ny],
+                values,
+            } => {
+                let (nx, ny) = (*nx, *ny);
+                let centre = |i: usize, j: usize| {
+                    (
+                        -0.5 * nx as f64 * texel + (j as f64 + 0.5) * texel,
+                        0.5 * ny as f64 * texel - (i as f64 + 0.5) * texel,
+                    )
+                };
+                values
+                    .iter()
+                    .map(|vals| {
+                        let mut v = Vec::with_capacity(nx * ny);
+                        for i in 0..ny {
+                            for j in 0..nx {
+                                let (x, y) = centre(i, j);
+                                let s = pattern.select(x, y);
+                                v.push(vals[0] + s * (vals[1] - vals[0]));
+                            }
+                        }
+                        TexelMap::new(nx, ny, texel, v)
+                    })
+                    .collect()
+            }
+        }
+    }
+}
+
+/// Builds a map's channels on its texel grid: validated
+/// ([`MapSpec::parse`]), then built ([`MapSpec::build`]).
 fn build_map(
     raw: &RawMap,
     key: &str,
@@ -531,248 +889,7 @@ fn build_map(
     dir: &Path,
     path: &Path,
 ) -> Result<Vec<TexelMap>> {
-    let bad = |sub: &str, msg: String| Error::format(path, format!("{key}{sub}"), msg);
-    let kinds = [
-        raw.constant.is_some(),
-        raw.rgb.is_some(),
-        raw.pattern.is_some(),
-        raw.file.is_some(),
-        raw.channels.is_some(),
-    ];
-    if kinds.iter().filter(|k| **k).count() != 1 {
-        return Err(bad(
-            "",
-            "give exactly one of constant, rgb, pattern, file, channels".into(),
-        ));
-    }
-    // A key the map's kind does not read is an error, not silently ignored
-    // (e.g. `width` on a checker, whose cell would stay at its default).
-    let (what, takes): (String, &[&str]) = match (&raw.pattern, &raw.file) {
-        (Some(p), _) => (
-            format!("pattern \"{p}\""),
-            match p.as_str() {
-                "stripes" => &["values", "size", "width", "angle"],
-                "checker" => &["values", "size", "cell"],
-                "ramp" => &["values", "size", "length"],
-                "dots" => &["values", "size", "spacing", "radius"],
-                "complex" => &["values", "size", "seed"],
-                _ => &[
-                    "values", "size", "width", "angle", "cell", "length", "spacing", "radius",
-                    "seed",
-                ],
-            },
-        ),
-        (None, Some(_)) => ("a file map".into(), &["transfer"]),
-        // A constant reads the same at every size: `size` is harmless.
-        _ if raw.constant.is_some() || raw.rgb.is_some() => ("a constant map".into(), &["size"]),
-        _ => ("this map".into(), &[]),
-    };
-    let given = [
-        ("values", raw.values.is_some()),
-        ("width", raw.width.is_some()),
-        ("angle", raw.angle.is_some()),
-        ("cell", raw.cell.is_some()),
-        ("length", raw.length.is_some()),
-        ("spacing", raw.spacing.is_some()),
-        ("radius", raw.radius.is_some()),
-        ("seed", raw.seed.is_some()),
-        ("transfer", raw.transfer.is_some()),
-        ("size", raw.size.is_some()),
-    ];
-    if let Some((k, _)) = given.iter().find(|(k, on)| *on && !takes.contains(k)) {
-        let takes = if takes.is_empty() {
-            "no other key".to_string()
-        } else {
-            takes.join(", ")
-        };
-        return Err(bad(
-            &format!(".{k}"),
-            format!("not a key of {what} (it takes: {takes})"),
-        ));
-    }
-    if let Some(ch) = &raw.channels {
-        if ch.len() != 3 {
-            return Err(bad(
-                ".channels",
-                format!("needs three maps (R, G, B), found {}", ch.len()),
-            ));
-        }
-        let mut out = Vec::new();
-        for (c, m) in ch.iter().enumerate() {
-            let mut v = build_map(
-                m,
-                &format!("{key}.channels[{c}]"),
-                texel,
-                default_size,
-                dir,
-                path,
-            )?;
-            if v.len() != 1 {
-                return Err(bad(
-                    &format!(".channels[{c}]"),
-                    "each channel must be a grey map".into(),
-                ));
-            }
-            out.push(v.remove(0));
-        }
-        return Ok(out);
-    }
-    if let Some(c) = raw.constant {
-        return Ok(vec![TexelMap::new(1, 1, texel, vec![c])?]);
-    }
-    if let Some(rgb) = raw.rgb {
-        return rgb
-            .iter()
-            .map(|c| TexelMap::new(1, 1, texel, vec![*c]))
-            .collect();
-    }
-    if let Some(file) = &raw.file {
-        let ext = file
-            .extension()
-            .map(|e| e.to_string_lossy().to_lowercase())
-            .unwrap_or_default();
-        // Any letter case: "sRGB", "Linear".
-        let lower = raw.transfer.as_ref().map(|t| t.to_ascii_lowercase());
-        let transfer = lower.as_deref();
-        match (ext.as_str(), transfer) {
-            ("png", Some("srgb" | "linear")) | ("npy" | "exr", None | Some("linear")) => {}
-            ("png", None) => {
-                return Err(bad(
-                    ".transfer",
-                    "missing: a PNG map needs transfer = \"srgb\" or \"linear\"".into(),
-                ));
-            }
-            ("png", Some(_)) => {
-                return Err(bad(
-                    ".transfer",
-                    format!(
-                        "'{}': a PNG map needs transfer = \"srgb\" or \"linear\"",
-                        raw.transfer.as_deref().unwrap_or_default()
-                    ),
-                ));
-            }
-            (_, Some(_)) => {
-                return Err(bad(
-                    ".transfer",
-                    format!(
-                        "'{}': .npy and .exr maps hold linear values",
-                        raw.transfer.as_deref().unwrap_or_default()
-                    ),
-                ));
-            }
-            _ => {}
-        }
-        let path = dir.join(file);
-        let loaded = match ext.as_str() {
-            "npy" => load_npy(&path, texel),
-            "exr" => load_exr(&path, texel),
-            "png" => load_png(&path, texel, transfer == Some("srgb")),
-            _ => {
-                return Err(bad(
-                    ".file",
-                    format!("{}: expected a .npy, .exr or .png file", file.display()),
-                ));
-            }
-        };
-        // Named by the scene file and key, and the map file.
-        return loaded.map_err(|e| {
-            let (msg, name) = (e.to_string(), path.display().to_string());
-            bad(
-                ".file",
-                if msg.contains(&name) {
-                    msg
-                } else {
-                    format!("{name}: {msg}")
-                },
-            )
-        });
-    }
-    let pattern = raw.pattern.as_deref().unwrap_or_default();
-    let [nx, ny] = raw.size.unwrap_or([default_size, default_size]);
-    if nx == 0 || ny == 0 || nx.checked_mul(ny).is_none_or(|n| n > 1 << 26) {
-        return Err(bad(
-            ".size",
-            format!("[{nx}, {ny}] must be positive and at most 2^26 texels"),
-        ));
-    }
-    let channels = values_of(raw, key, path)?;
-    let positive = |name: &str, v: Option<f64>, default: f64| -> Result<f64> {
-        let v = v.unwrap_or(default);
-        if v > 0.0 && v.is_finite() {
-            Ok(v)
-        } else {
-            Err(bad(
-                &format!(".{name}"),
-                format!("{v} must be finite and > 0"),
-            ))
-        }
-    };
-    let finite = |name: &str, v: f64| -> Result<f64> {
-        if v.is_finite() {
-            Ok(v)
-        } else {
-            Err(bad(&format!(".{name}"), format!("{v} must be finite")))
-        }
-    };
-    // Selector in [0, 1] per texel centre (x, y): 0 → values[0], 1 → values[1].
-    let select: Box<dyn Fn(f64, f64) -> f64> = match pattern {
-        "stripes" => {
-            let w = positive("width", raw.width, 0.5)?;
-            let a = finite("angle", raw.angle.unwrap_or(0.0))?.to_radians();
-            Box::new(move |x, y| {
-                let u = x * a.cos() + y * a.sin();
-                ((u / w).floor().rem_euclid(2.0) != 0.0) as u8 as f64
-            })
-        }
-        "checker" => {
-            let c = positive("cell", raw.cell, 0.5)?;
-            Box::new(move |x, y| {
-                (((x / c).floor() + (y / c).floor()).rem_euclid(2.0) != 0.0) as u8 as f64
-            })
-        }
-        "ramp" => {
-            let l = positive("length", raw.length, 8.0)?;
-            Box::new(move |x, _| (x / l + 0.5).clamp(0.0, 1.0))
-        }
-        "dots" => {
-            let s = positive("spacing", raw.spacing, 1.0)?;
-            let r = positive("radius", raw.radius, 0.2)?;
-            Box::new(move |x, y| {
-                let (dx, dy) = (x - s * (x / s).round(), y - s * (y / s).round());
-                (dx.hypot(dy) < r) as u8 as f64
-            })
-        }
-        "complex" => {
-            let seed = raw.seed.unwrap_or(1);
-            Box::new(move |x, y| complex_pattern(seed, x, y))
-        }
-        p => {
-            return Err(bad(
-                ".pattern",
-                format!("unknown pattern '{p}' (stripes, checker, ramp, dots, complex)"),
-            ));
-        }
-    };
-    let centre = |i: usize, j: usize| {
-        (
-            -0.5 * nx as f64 * texel + (j as f64 + 0.5) * texel,
-            0.5 * ny as f64 * texel - (i as f64 + 0.5) * texel,
-        )
-    };
-    channels
-        .iter()
-        .map(|vals| {
-            let mut v = Vec::with_capacity(nx * ny);
-            for i in 0..ny {
-                for j in 0..nx {
-                    let (x, y) = centre(i, j);
-                    let s = select(x, y);
-                    v.push(vals[0] + s * (vals[1] - vals[0]));
-                }
-            }
-            TexelMap::new(nx, ny, texel, v)
-        })
-        .collect()
+    MapSpec::parse(raw, key, default_size, path)?.build(key, texel, dir, path)
 }
 
 /// Thin lines and dots at three scales (seeded): 1 on a feature, 0 off.

@@ -229,7 +229,10 @@ mod tests {
             serde_json::to_value(&*m.basis).unwrap(),
             serde_json::to_value(&on_disk).unwrap()
         );
-        assert_eq!(m.basis_diffuse.incidence, "diffuse");
+        assert_eq!(
+            m.basis_diffuse.incidence,
+            crate::forward::medium::Incidence::Diffuse
+        );
         assert!(m.meta.all.alpha_range[0] < m.meta.all.alpha_range[1]);
     }
 

@@ -226,7 +226,7 @@ pub struct BasisModel {
     pub eta: f64,
     pub g: f64,
     /// "pencil" (normal incidence) or "diffuse".
-    pub incidence: String,
+    pub incidence: crate::forward::medium::Incidence,
     /// Polynomial degree in the albedo coordinate.
     pub degree: usize,
     /// a_kj: K rows of degree + 1 Chebyshev coefficients of ln(A_k/α²).

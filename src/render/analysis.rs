@@ -47,7 +47,7 @@ pub enum EffectKind {
     #[serde(rename = "diffuse-incidence profile")]
     DiffuseProfile,
     /// Simulating and fitting the meta-model where the scene's albedos
-    /// leave its trained range ([`super::extend`]).
+    /// leave its trained range ([`crate::jobs::extend`]).
     #[serde(rename = "kernel simulation (missing albedo range)")]
     KernelSimulation,
 }
@@ -74,12 +74,7 @@ impl std::fmt::Display for EffectKind {
 
 /// The incidence a basis profile is fitted to: a collimated light needs
 /// pencil-beam profiles, a diffuse one diffuse-incidence profiles.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Incidence {
-    Pencil,
-    Diffuse,
-}
+pub use crate::forward::medium::Incidence;
 
 /// One effect the analysis considered.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -161,10 +156,7 @@ pub fn analyse(scene: &Scene, skip: bool) -> Plan {
     };
     let corner = scene.half_width * std::f64::consts::SQRT_2;
     let max_optical_distance = density_range[1] * (corner + scene.light_radius);
-    let incidence = match scene.light {
-        LightKind::Collimated => Incidence::Pencil,
-        LightKind::Diffuse => Incidence::Diffuse,
-    };
+    let incidence = scene.light.incidence();
     let light = format!(
         "the light is a {} disk of radius {} MFP",
         match scene.light {

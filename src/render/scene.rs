@@ -15,6 +15,23 @@ pub enum LightKind {
     Diffuse,
 }
 
+impl LightKind {
+    /// The incidence of this light (the basis profile it needs).
+    pub fn incidence(&self) -> crate::forward::medium::Incidence {
+        match self {
+            LightKind::Collimated => crate::forward::medium::Incidence::Pencil,
+            LightKind::Diffuse => crate::forward::medium::Incidence::Diffuse,
+        }
+    }
+
+    pub fn name(&self) -> &'static str {
+        match self {
+            LightKind::Collimated => "collimated",
+            LightKind::Diffuse => "diffuse",
+        }
+    }
+}
+
 /// What the image holds.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
