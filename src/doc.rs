@@ -14,8 +14,11 @@ pub trait Document: Serialize + DeserializeOwned {
     const FORMAT: &'static str;
     /// The version this build reads and writes.
     const VERSION: u32;
-    /// Checks shapes and values; errors name `origin` and the key.
-    fn validate(&self, origin: &Path) -> Result<()>;
+    /// Checks shapes and values; errors name `origin` and the key. (By
+    /// default: nothing beyond what serde checks.)
+    fn validate(&self, _origin: &Path) -> Result<()> {
+        Ok(())
+    }
 }
 
 /// What a document of each `format` tag holds, in words.

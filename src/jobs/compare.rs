@@ -369,20 +369,9 @@ pub struct CurvesDoc {
     pub speedups: Vec<Speedup>,
 }
 
-impl CompareDoc {
-    /// Reads `compare.json`, checking its format and version.
-    pub fn load(path: &Path) -> Result<CompareDoc> {
-        crate::jobs::store::load(path)
-    }
-}
-
 impl crate::doc::Document for CompareDoc {
     const FORMAT: &'static str = COMPARE_FORMAT;
     const VERSION: u32 = COMPARE_VERSION;
-
-    fn validate(&self, _origin: &Path) -> Result<()> {
-        Ok(())
-    }
 }
 
 /// One line of the speed-up summary.

@@ -76,20 +76,11 @@ impl ExperimentsDoc {
             provenance: Provenance::current(),
         }
     }
-
-    /// Reads `experiments.json`, checking its format and version.
-    pub fn load(path: &Path) -> Result<ExperimentsDoc> {
-        crate::jobs::store::load(path)
-    }
 }
 
 impl crate::doc::Document for ExperimentsDoc {
     const FORMAT: &'static str = EXPERIMENTS_FORMAT;
     const VERSION: u32 = EXPERIMENTS_VERSION;
-
-    fn validate(&self, _origin: &Path) -> Result<()> {
-        Ok(())
-    }
 }
 
 /// Every experiment's table as text (the report without its figure).

@@ -177,13 +177,6 @@ fn chunk_list(chunks: &[(u64, u64)]) -> String {
     parts.join(", ")
 }
 
-impl ReferenceDoc {
-    /// Reads a reference tally document ([`crate::jobs::store::load`]).
-    pub fn load(path: &Path) -> Result<Self> {
-        crate::jobs::store::load(path)
-    }
-}
-
 impl crate::doc::Document for ReferenceDoc {
     const FORMAT: &'static str = REFERENCE_FORMAT;
     const VERSION: u32 = REFERENCE_VERSION;
@@ -822,20 +815,9 @@ pub struct MethodDoc {
     pub mean: f64,
 }
 
-impl RenderDoc {
-    /// Reads `render.json`, checking its format and version.
-    pub fn load(path: &Path) -> Result<RenderDoc> {
-        crate::jobs::store::load(path)
-    }
-}
-
 impl crate::doc::Document for RenderDoc {
     const FORMAT: &'static str = RENDER_FORMAT;
     const VERSION: u32 = RENDER_VERSION;
-
-    fn validate(&self, _origin: &Path) -> Result<()> {
-        Ok(())
-    }
 }
 
 /// The header of [`MethodDoc`]'s rows.

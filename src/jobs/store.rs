@@ -116,7 +116,16 @@ macro_rules! loadable {
         }
     )*};
 }
-loadable!(ProfileDoc, KernelDoc, BasisModel, MetaModelFile);
+loadable!(
+    ProfileDoc,
+    KernelDoc,
+    BasisModel,
+    MetaModelFile,
+    crate::jobs::render::ReferenceDoc,
+    crate::jobs::render::RenderDoc,
+    crate::jobs::compare::CompareDoc,
+    crate::jobs::experiments::ExperimentsDoc
+);
 
 /// A content hash (SHA-256, first 64 bits, hex) of byte strings, each
 /// terminated so that `["ab", "c"]` and `["a", "bc"]` differ. It names cache
