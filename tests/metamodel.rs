@@ -175,3 +175,57 @@ fn kernel_query_command() {
         assert!(!ok && err.contains(flag), "{args:?}: {err}");
     }
 }
+
+/// The whole-plane moments the tally keeps agree with the histogram where
+/// the window holds nearly every vertex (binned means to within a bin), and
+/// every report row carries the window's share and both moments.
+#[test]
+fn whole_plane_moments_and_the_window_are_reported() {
+    let doc = KernelDoc::load(Path::new(KERNELS)).unwrap();
+    let f = MetaModelFile::load(Path::new(META)).unwrap();
+    let mut checked = 0;
+    for class in [VertexClass::All, VertexClass::Last] {
+        for c in cells(&doc, class) {
+            let plane = c.plane.expect("measured cells carry their moments");
+            let h = &c.hist;
+            let ns = h.ns();
+            let (mut m, mut mt, mut ms2) = (0.0, 0.0, 0.0);
+            for (b, w) in h.mass.iter().enumerate() {
+                let (it, is) = (b / ns, b % ns);
+                let t = 0.5 * (h.t_edges[it] + h.t_edges[it + 1]);
+                let s = 0.5 * (h.s_edges[is] + h.s_edges[is + 1]);
+                m += w;
+                mt += w * t;
+                ms2 += w * s * s;
+            }
+            let row = aggregation_row(class, &c, None, &f.eval(class, c.d, c.alpha, 1.0).gmm);
+            assert!(row.window > 0.5 && row.window <= 1.0 + 1e-12, "{row:?}");
+            assert!(
+                (row.window - m).abs() < 1e-9,
+                "window {} vs Σ mass {m}",
+                row.window
+            );
+            let [data, meta] = row.plane.expect("moments in the row");
+            assert_eq!(data, plane);
+            assert!(meta.rms_s > 0.0 && meta.mean_t.is_finite());
+            if row.window > 0.999 {
+                let dt = h.t_edges[1] - h.t_edges[0];
+                let ds = h.s_edges[1] - h.s_edges[0];
+                assert!(
+                    (mt / m - plane.mean_t).abs() < dt,
+                    "{class:?} α {} d {}",
+                    c.alpha,
+                    c.d
+                );
+                assert!(
+                    ((ms2 / m).sqrt() - plane.rms_s).abs() < ds,
+                    "{class:?} α {} d {}",
+                    c.alpha,
+                    c.d
+                );
+                checked += 1;
+            }
+        }
+    }
+    assert!(checked > 20, "only {checked} cells with the whole window");
+}

@@ -11,7 +11,7 @@
 //! mass is left out of every method alike.
 
 use crate::fit::gmm::{KernelHistogram, histogram_of};
-use crate::fit::meta::Cell;
+use crate::fit::meta::{Cell, PlaneMoments};
 use crate::forward::kernel::VertexClass;
 use crate::forward::rng::PathRng;
 use crate::metamodel::kernel::{Gmm, manual_kernel};
@@ -110,6 +110,18 @@ pub struct AggregationRow {
     /// The histogram's own statistical noise on α_t (RMS over textures of
     /// the standard error, from the bins' standard errors).
     pub noise: f64,
+    /// The fraction of the class's vertex weight inside the tally's window
+    /// (1 − overflow): what the histogram, and so the fit, sees.
+    #[serde(default = "one")]
+    pub window: f64,
+    /// Whole-plane moments of the measured vertices and of the meta-model
+    /// kernel ([`PlaneMoments`]), where the tally has them.
+    #[serde(default)]
+    pub plane: Option<[PlaneMoments; 2]>,
+}
+
+fn one() -> f64 {
+    1.0
 }
 
 pub fn rms(v: impl Iterator<Item = f64>) -> f64 {
@@ -155,5 +167,7 @@ pub fn aggregation_row(
         meta: err(1),
         manual: err(2),
         noise,
+        window: 1.0 - h.overflow,
+        plane: cell.plane.map(|data| [data, PlaneMoments::of(meta)]),
     }
 }

@@ -81,6 +81,59 @@ pub struct Cell {
     pub alpha: f64,
     pub d: f64,
     pub hist: KernelHistogram,
+    /// The class's vertices over the whole plane (no window), if tallied.
+    pub plane: Option<PlaneMoments>,
+}
+
+/// Where a class's vertices lie over the whole plane, window or not: the
+/// mean of t (MFP from x_i toward x_e) and the rms of s (MFP across), each
+/// vertex weighted as in the histogram.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PlaneMoments {
+    pub mean_t: f64,
+    pub rms_s: f64,
+}
+
+impl PlaneMoments {
+    /// The moments of a kernel: E t = Σ w t_k, E s² = Σ w (s_k² + σ_k²)
+    /// (isotropic components), normalised by Σ w.
+    pub fn of(g: &Gmm) -> PlaneMoments {
+        let w: f64 = g
+            .components
+            .iter()
+            .map(|c| c.weight)
+            .sum::<f64>()
+            .max(1e-300);
+        let t = g.components.iter().map(|c| c.weight * c.t).sum::<f64>() / w;
+        let s2 = g
+            .components
+            .iter()
+            .map(|c| c.weight * (c.s * c.s + c.sigma * c.sigma))
+            .sum::<f64>()
+            / w;
+        PlaneMoments {
+            mean_t: t,
+            rms_s: s2.sqrt(),
+        }
+    }
+}
+
+impl Cell {
+    /// The cell of a measured histogram, with its whole-plane moments
+    /// (t = d/2 + λu, |s| = λv).
+    pub fn measured(alpha: f64, h: NormalizedHistogram) -> Cell {
+        let (d, l) = (h.d, h.lambda);
+        let plane = PlaneMoments {
+            mean_t: 0.5 * d + l * h.mean_u,
+            rms_s: l * h.mean_v2.max(0.0).sqrt(),
+        };
+        Cell {
+            alpha,
+            d,
+            hist: fit_histogram(h),
+            plane: Some(plane),
+        }
+    }
 }
 
 /// The cells of `doc` (one vertex class) with at least [`MIN_PATHS`] paths.
@@ -88,13 +141,9 @@ pub struct Cell {
 pub fn cells(doc: &KernelDoc, class: VertexClass) -> Vec<Cell> {
     let mut out = Vec::new();
     for (ia, a) in doc.config.albedos.iter().enumerate() {
-        for (id, d) in doc.config.distances.iter().enumerate() {
+        for id in 0..doc.config.distances.len() {
             if doc.tally.cells[ia][id].paths >= MIN_PATHS {
-                out.push(Cell {
-                    alpha: *a,
-                    d: *d,
-                    hist: histogram_from_doc(doc, ia, id, class),
-                });
+                out.push(Cell::measured(*a, doc.histogram(ia, id, class)));
             }
         }
     }
@@ -551,6 +600,30 @@ pub fn fit_metamodel(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn plane_moments_of_a_mixture() {
+        use crate::metamodel::kernel::Component;
+        let g = Gmm {
+            components: vec![
+                Component {
+                    weight: 0.25,
+                    t: 0.0,
+                    s: 0.0,
+                    sigma: 1.0,
+                },
+                Component {
+                    weight: 0.75,
+                    t: 2.0,
+                    s: 0.0,
+                    sigma: 3.0,
+                },
+            ],
+        };
+        let m = PlaneMoments::of(&g);
+        assert!((m.mean_t - 1.5).abs() < 1e-15);
+        assert!((m.rms_s - (0.25f64 + 0.75 * 9.0).sqrt()).abs() < 1e-15);
+    }
     use crate::fit::gmm::histogram_of;
     use crate::fit::lm::jacobian_mismatch;
 
@@ -580,6 +653,7 @@ mod tests {
                     alpha: a,
                     d,
                     hist: h,
+                    plane: None,
                 });
             }
         }

@@ -72,14 +72,20 @@ pub fn fit_kernels(
 }
 
 /// Per vertex class: cells, the mean and worst aggregation error of the
-/// meta-model and of the manual kernel, and the cells where the meta-model
-/// is the better of the two (α_t errors in albedo units).
+/// meta-model and of the manual kernel, the cells where the meta-model is
+/// the better of the two (α_t errors in albedo units); then what the tally
+/// window holds and how far the meta-model's whole-plane moments are from
+/// the measured vertices'.
 pub fn aggregation_summary(rows: &[AggregationRow]) -> String {
     let mut s = String::from(
         "vertices  cells  meta-model mean / worst   manual mean / worst   meta-model better\n",
     );
-    for class in [VertexClass::All, VertexClass::Last] {
-        let r: Vec<&AggregationRow> = rows.iter().filter(|r| r.class == class).collect();
+    let classes = [VertexClass::All, VertexClass::Last];
+    let of = |class: VertexClass| -> Vec<&AggregationRow> {
+        rows.iter().filter(|r| r.class == class).collect()
+    };
+    for class in classes {
+        let r = of(class);
         if r.is_empty() {
             continue;
         }
@@ -89,7 +95,7 @@ pub fn aggregation_summary(rows: &[AggregationRow]) -> String {
         let better = r.iter().filter(|x| x.meta < x.manual).count();
         s += &format!(
             "{:<9} {:>5}  {:>10.4} / {:<10.4}   {:>7.4} / {:<8.4}   {better} of {}\n",
-            format!("{class:?}").to_lowercase(),
+            class.name(),
             r.len(),
             mean(&|x| x.meta),
             worst(&|x| x.meta),
@@ -98,25 +104,64 @@ pub fn aggregation_summary(rows: &[AggregationRow]) -> String {
             r.len()
         );
     }
+    s += "vertices  window holds (worst cell)          whole plane: |Δ mean t| worst   rms s meta/data\n";
+    for class in classes {
+        let r = of(class);
+        let Some(w) = r.iter().min_by(|a, b| a.window.total_cmp(&b.window)) else {
+            continue;
+        };
+        let moments: Vec<(f64, f64)> = r
+            .iter()
+            .filter_map(|x| x.plane)
+            .map(|[data, meta]| {
+                (
+                    (meta.mean_t - data.mean_t).abs(),
+                    meta.rms_s / data.rms_s.max(1e-300),
+                )
+            })
+            .collect();
+        let dt = moments.iter().map(|m| m.0).fold(0.0, f64::max);
+        let (lo, hi) = moments.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), m| {
+            (lo.min(m.1), hi.max(m.1))
+        });
+        s += &format!(
+            "{:<9} {:>6.2} % (α = {}, d = {} MFP)        {:>8.3} MFP               {lo:.2}–{hi:.2}\n",
+            class.name(),
+            100.0 * w.window,
+            w.alpha,
+            w.d,
+            dt
+        );
+    }
     s
 }
 
-/// The aggregation-error table as Markdown (α_t errors in albedo units).
+/// The aggregation-error table as Markdown (α_t errors in albedo units),
+/// with the window's share of the vertices and the whole-plane moments
+/// (mean t, rms s in MFP) of the measured vertices and of the meta-model.
 pub fn aggregation_table(rows: &[AggregationRow]) -> String {
     let mut s = String::from(
-        "| vertices | α | d | paths | per-config GMM | meta-model | manual | histogram noise |\n|---|---|---|---|---|---|---|---|\n",
+        "| vertices | α | d | paths | per-config GMM | meta-model | manual | histogram noise | window holds | mean t data / meta | rms s data / meta |\n|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for r in rows {
+        let (t, sd) = match r.plane {
+            Some([data, meta]) => (
+                format!("{:+.3} / {:+.3}", data.mean_t, meta.mean_t),
+                format!("{:.3} / {:.3}", data.rms_s, meta.rms_s),
+            ),
+            None => ("—".into(), "—".into()),
+        };
         s += &format!(
-            "| {:?} | {} | {} | {} | {} | {:.4} | {:.4} | {:.4} |\n",
-            r.class,
+            "| {} | {} | {} | {} | {} | {:.4} | {:.4} | {:.4} | {:.2} % | {t} | {sd} |\n",
+            r.class.name(),
             r.alpha,
             r.d,
             r.paths,
             r.per_config.map_or("failed".into(), |v| format!("{v:.4}")),
             r.meta,
             r.manual,
-            r.noise
+            r.noise,
+            100.0 * r.window
         );
     }
     s
@@ -377,8 +422,7 @@ pub fn density_step_experiment(
             };
             let cell_tally = k.run();
             let h = cell_tally.normalized(&grid, VertexClass::All, alpha, d, lambda);
-            let hist = crate::fit::meta::fit_histogram(h);
-            let cell = Cell { alpha, d, hist };
+            let cell = Cell::measured(alpha, h);
             // Kernel-weighted density: mass on each side of the step.
             let weighted = |g: &Gmm| {
                 let w_left: f64 = g
