@@ -246,6 +246,10 @@ struct RenderArgs {
     /// Kernel-method variant: a second pass with α₀ = α_t.
     #[arg(long)]
     two_pass: bool,
+    /// Kernel-method variant: aggregate ln α (the kernel-weighted geometric
+    /// mean) instead of α.
+    #[arg(long)]
+    log_albedo: bool,
     /// Paths of the reference (default: the scene's `reference_paths`; 1e7 notation).
     #[arg(long, value_parser = parse_count)]
     paths: Option<u64>,
@@ -1090,6 +1094,7 @@ fn render(a: RenderArgs) -> Result<()> {
             plain: a.plain,
             vertex_kernels: !a.point_albedos,
             two_pass: a.two_pass,
+            log_albedo: a.log_albedo,
         },
         seed: a.seed,
         reference_paths: a.paths,

@@ -373,6 +373,7 @@ fn hard_cases_give_finite_images() {
                 plain: on,
                 vertex_kernels: on,
                 two_pass: on,
+                log_albedo: on,
             };
             let passes = render_scene(&scene, &o).unwrap_or_else(|e| panic!("{name}: {e}"));
             assert_finite(&passes, name);

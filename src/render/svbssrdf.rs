@@ -141,7 +141,15 @@ pub struct Variant {
     pub plain: bool,
     pub vertex_kernels: bool,
     pub two_pass: bool,
+    /// Aggregate ln α instead of α: α_t = exp(∫Kρ ln α / ∫Kρ), the
+    /// kernel-weighted geometric mean (albedos floored at
+    /// [`LOG_ALBEDO_FLOOR`]). A path's throughput is the product of its
+    /// vertices' albedos, so its logarithm is linear in the ln α it crosses.
+    pub log_albedo: bool,
 }
+
+/// The albedo below which `log_albedo` aggregation reads the floor.
+pub const LOG_ALBEDO_FLOOR: f64 = 1e-6;
 
 impl Default for Variant {
     fn default() -> Self {
@@ -149,6 +157,7 @@ impl Default for Variant {
             plain: false,
             vertex_kernels: true,
             two_pass: false,
+            log_albedo: false,
         }
     }
 }
@@ -165,6 +174,9 @@ impl Variant {
         }
         if self.two_pass {
             s += "+2pass";
+        }
+        if self.log_albedo {
+            s += "+log-albedo";
         }
         s
     }
@@ -348,8 +360,9 @@ pub struct Scratch {
 pub struct Material {
     albedo: Vec<TexelMap>,
     density: Density,
-    /// Pyramids of the density-scaled (`[0]`) and the plain (`[1]`) variant.
-    pyramids: [OnceLock<Arc<Pyramids>>; 2],
+    /// Pyramids of the density-scaled (`[0]`) and the plain (`[1]`)
+    /// variant, of α and (`[2]`, `[3]`) of ln α.
+    pyramids: [OnceLock<Arc<Pyramids>>; 4],
     rows: OnceLock<Arc<Rows>>,
 }
 
@@ -389,12 +402,30 @@ impl Material {
     fn pyramids(&self, variant: &Variant) -> Result<Arc<Pyramids>> {
         let varying = matches!(self.density, Density::Map(_));
         // The plain variant's pyramids differ only with a density map.
-        let slot = &self.pyramids[usize::from(varying && variant.plain)];
+        let slot = &self.pyramids
+            [usize::from(varying && variant.plain) + 2 * usize::from(variant.log_albedo)];
         if let Some(p) = slot.get() {
             return Ok(p.clone());
         }
+        let logs;
+        let albedo = if variant.log_albedo {
+            logs = self
+                .albedo
+                .iter()
+                .map(|m| {
+                    let mut l = m.clone();
+                    for v in &mut l.values {
+                        *v = v.max(LOG_ALBEDO_FLOOR).ln();
+                    }
+                    l
+                })
+                .collect::<Vec<_>>();
+            &logs
+        } else {
+            &self.albedo
+        };
         let alpha = if !varying || variant.plain {
-            self.albedo
+            albedo
                 .iter()
                 .map(GaussianPyramid::new)
                 .collect::<Result<_>>()?
@@ -403,7 +434,7 @@ impl Material {
         };
         let (rho_alpha, rho) = match &self.density {
             Density::Map(rho) => (
-                density_weighted(&self.albedo, &self.density)
+                density_weighted(albedo, &self.density)
                     .iter()
                     .map(GaussianPyramid::new)
                     .collect::<Result<_>>()?,
@@ -676,15 +707,17 @@ impl SvBssrdf {
                 _ => plain += comp.weight * p.alpha[c].integrate(mu, comp.sigma),
             }
         }
+        // The aggregated quantity is α, or ln α for `log_albedo`.
+        let albedo = |x: f64| if self.variant.log_albedo { x.exp() } else { x };
         match &self.material.density {
-            Density::Constant(r) => ((plain / wsum).clamp(0.0, 1.0), *r),
+            Density::Constant(r) => (albedo(plain / wsum).clamp(0.0, 1.0), *r),
             Density::Map(_) => {
                 let alpha_t = if self.variant.plain {
                     plain / wsum
                 } else {
                     num / den
                 };
-                (alpha_t.clamp(0.0, 1.0), den / wsum)
+                (albedo(alpha_t).clamp(0.0, 1.0), den / wsum)
             }
         }
     }
@@ -1097,6 +1130,7 @@ mod tests {
                             plain: true,
                             vertex_kernels: true,
                             two_pass: true,
+                            log_albedo: false,
                         },
                     ] {
                         // A 1 × 1 density map under a 16 × 16 albedo: resampled.
@@ -1144,6 +1178,72 @@ mod tests {
                 .unwrap();
                 let s = sv.eval(0, [-3.0, 3.0], [-2.0, 3.5], &mut Scratch::default());
                 assert!(s.is_finite() && s >= 0.0, "{eps}: {s}");
+            }
+        }
+    }
+
+    /// `log_albedo` aggregates the kernel-weighted geometric mean: on a fine
+    /// checker of 0.2 and 0.8 under a wide kernel, α_t is √(0.2·0.8) = 0.4
+    /// where the linear mean is 0.5; with a density map, ρ weights ln α.
+    #[test]
+    fn log_albedo_aggregates_the_geometric_mean() {
+        let (_, t) = basis();
+        let n = 400;
+        let tau = 0.05;
+        let checker: Vec<f64> = (0..n * n)
+            .map(|k| if (k / n + k % n) % 2 == 0 { 0.2 } else { 0.8 })
+            .collect();
+        let albedo = TexelMap::new(n, n, tau, checker).unwrap();
+        let kernel = Gmm {
+            components: vec![Component {
+                weight: 1.0,
+                t: 0.5,
+                s: 0.0,
+                sigma: 1.5,
+            }],
+        };
+        let frame = Frame {
+            xi: [0.0, 0.0],
+            axis: [1.0, 0.0],
+        };
+        // Density 3 on the 0.8 texels, 1 on the 0.2 ones.
+        let rho = TexelMap::new(
+            n,
+            n,
+            tau,
+            albedo
+                .values
+                .iter()
+                .map(|&a| if a > 0.5 { 3.0 } else { 1.0 })
+                .collect(),
+        )
+        .unwrap();
+        for (density, linear, geometric) in [
+            (Density::Constant(1.0), 0.5, 0.4),
+            (
+                Density::Map(rho),
+                (0.2 + 3.0 * 0.8) / 4.0,
+                ((0.2f64.ln() + 3.0 * 0.8f64.ln()) / 4.0).exp(),
+            ),
+        ] {
+            for (log_albedo, want) in [(false, linear), (true, geometric)] {
+                let sv = SvBssrdf::new(
+                    Method::Manual,
+                    Variant {
+                        log_albedo,
+                        ..Variant::default()
+                    },
+                    t.clone(),
+                    None,
+                    vec![albedo.clone()],
+                    density.clone(),
+                )
+                .unwrap();
+                let (alpha_t, _) = sv.aggregate(0, &frame, &kernel);
+                assert!(
+                    (alpha_t - want).abs() < 2e-3,
+                    "log {log_albedo}: α_t {alpha_t} against {want}"
+                );
             }
         }
     }
