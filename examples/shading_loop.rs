@@ -46,10 +46,11 @@ fn main() -> svkernel::Result<()> {
             .iter()
             .map(|s| {
                 let mut sum = 0.0;
+                let sampler = s.entry_sampler(xe);
                 for j in 0..samples {
                     // The same entry points for every method (one stream per sample).
                     let mut rng = PathRng::new(1, j);
-                    let e = s.sample_entry(xe, [rng.uniform(), rng.uniform()]);
+                    let e = sampler.sample([rng.uniform(), rng.uniform()]);
                     if e.pdf > 0.0 && e.xi[0].hypot(e.xi[1]) <= radius {
                         sum += irradiance * s.eval(0, e.xi, xe, &mut scratch) / e.pdf;
                     }

@@ -48,16 +48,23 @@ fn document(format: &str) -> String {
 /// The `format` tag of a JSON document, if it has one (`None` also for
 /// JSON that is not an object); errors name `origin`.
 pub fn format_of(text: &str, origin: &Path) -> Result<Option<String>> {
+    Ok(header_of(text, origin)?.0)
+}
+
+/// The `format` tag and the `version` (if a whole number) of a JSON
+/// document, read in one parse that skips the rest.
+fn header_of(text: &str, origin: &Path) -> Result<(Option<String>, Option<u64>)> {
     if !text.trim_start().starts_with('{') {
         // Truncated or empty text is worded by the full parse.
         serde_json::from_str::<serde::de::IgnoredAny>(text).map_err(|e| json_error(origin, e))?;
-        return Ok(None);
+        return Ok((None, None));
     }
     let head: Header = serde_json::from_str(text).map_err(|e| json_error(origin, e))?;
-    Ok(match head.format {
+    let format = match head.format {
         Some(serde_json::Value::String(f)) => Some(f),
         _ => None,
-    })
+    };
+    Ok((format, head.version.as_ref().and_then(|v| v.as_u64())))
 }
 
 #[derive(Deserialize)]
@@ -80,7 +87,8 @@ pub fn json_error(origin: &Path, e: serde_json::Error) -> Error {
 /// is named by its `format` tag), then the whole, then [`Document::validate`].
 pub fn from_json<T: Document>(text: &str, origin: &Path) -> Result<T> {
     let expected = document(T::FORMAT);
-    match format_of(text, origin)?.as_deref() {
+    let (format, version) = header_of(text, origin)?;
+    match format.as_deref() {
         Some(f) if f == T::FORMAT => {}
         Some(f) => {
             let found = if describe(f).is_some() {
@@ -102,8 +110,7 @@ pub fn from_json<T: Document>(text: &str, origin: &Path) -> Result<T> {
             ));
         }
     }
-    let head: Header = serde_json::from_str(text).map_err(|e| json_error(origin, e))?;
-    match head.version.as_ref().and_then(|v| v.as_u64()) {
+    match version {
         Some(v) if v == u64::from(T::VERSION) => {}
         found => {
             let found = found.map_or("none".to_string(), |v| v.to_string());
@@ -120,16 +127,6 @@ pub fn from_json<T: Document>(text: &str, origin: &Path) -> Result<T> {
     let doc: T = serde_json::from_str(text).map_err(|e| json_error(origin, e))?;
     doc.validate(origin)?;
     Ok(doc)
-}
-
-/// Serialises a document as pretty JSON (`compact = false`) or on one line.
-pub fn to_json<T: Serialize>(doc: &T, compact: bool, origin: &Path) -> Result<Vec<u8>> {
-    if compact {
-        serde_json::to_vec(doc)
-    } else {
-        serde_json::to_vec_pretty(doc)
-    }
-    .map_err(|e| Error::format(origin, "(serialise)", e))
 }
 
 /// `#[serde(with = "crate::doc::nan_as_null")]` on an `f64` field that can

@@ -94,7 +94,7 @@ pub mod prelude {
     pub use crate::metamodel::kernel::{Component, Gmm, manual_kernel};
     pub use crate::metamodel::meta::MetaModelFile;
     pub use crate::pair::VertexClass;
-    pub use crate::render::estimator::{EntrySample, Sampling};
+    pub use crate::render::estimator::{EntrySample, EntrySampler, Sampling};
     pub use crate::render::scene::Scene;
     pub use crate::render::svbssrdf::{BasisTable, Density, Method, Scratch, SvBssrdf, Variant};
 }

@@ -83,18 +83,7 @@ impl Task {
         match &self.mode {
             Mode::Off => {}
             Mode::Bar(bar) => bar.set_position(done),
-            Mode::Log => {
-                let mut st = self.state.lock().unwrap_or_else(|e| e.into_inner());
-                st.1 = done;
-                let due = match st.0 {
-                    None => self.start.elapsed() >= QUIET_FOR,
-                    Some(t) => t.elapsed() >= LOG_EVERY,
-                };
-                if due && self.total.is_none_or(|t| done < t) {
-                    st.0 = Some(Instant::now());
-                    self.line(done, "");
-                }
-            }
+            Mode::Log => self.advance(|_| done),
         }
     }
 
@@ -103,13 +92,23 @@ impl Task {
         match &self.mode {
             Mode::Off => {}
             Mode::Bar(bar) => bar.inc(n),
-            Mode::Log => {
-                let done = {
-                    let st = self.state.lock().unwrap_or_else(|e| e.into_inner());
-                    st.1 + n
-                };
-                self.set(done);
-            }
+            Mode::Log => self.advance(|done| done + n),
+        }
+    }
+
+    /// Log mode: moves the position (under one lock, so that threads
+    /// counting at once lose nothing) and prints a line when one is due.
+    fn advance(&self, to: impl FnOnce(u64) -> u64) {
+        let mut st = self.state.lock().unwrap_or_else(|e| e.into_inner());
+        st.1 = to(st.1);
+        let done = st.1;
+        let due = match st.0 {
+            None => self.start.elapsed() >= QUIET_FOR,
+            Some(t) => t.elapsed() >= LOG_EVERY,
+        };
+        if due && self.total.is_none_or(|t| done < t) {
+            st.0 = Some(Instant::now());
+            self.line(done, "");
         }
     }
 

@@ -238,13 +238,9 @@ pub fn reference_time_for(reference: &Curve, e: f64) -> Option<f64> {
 pub struct Speedup {
     pub method: Target,
     /// The model point with the largest ratio: its budget (spp), wall time
-    /// (set-up included), set-up and error.
-    pub budget: u64,
-    pub wall_s: f64,
-    #[serde(default)]
-    pub setup_s: f64,
-    #[serde(with = "crate::doc::nan_as_null")]
-    pub rel_rmse: f64,
+    /// (set-up included), set-up and error (written inline).
+    #[serde(flatten)]
+    pub point: CurvePoint,
     /// Reference render time to the same error ([`reference_time_for`]).
     pub reference_s: f64,
     /// `reference_s` over the model's render time (set-up excluded).
@@ -255,14 +251,9 @@ pub struct Speedup {
 }
 
 impl Speedup {
-    /// The model's render time: `wall_s` less the set-up.
-    pub fn render_s(&self) -> f64 {
-        self.wall_s - self.setup_s
-    }
-
     /// The speed-up with the model's set-up counted: `reference_s / wall_s`.
     pub fn ratio_with_setup(&self) -> f64 {
-        self.reference_s / self.wall_s.max(1e-9)
+        self.reference_s / self.point.wall_s.max(1e-9)
     }
 }
 
@@ -287,10 +278,7 @@ pub fn speedups(curves: &[Curve]) -> Vec<Speedup> {
                     let t = reference_time_for(reference, p.rel_rmse)?;
                     Some(Speedup {
                         method: c.method,
-                        budget: p.budget,
-                        wall_s: p.wall_s,
-                        setup_s: p.setup_s,
-                        rel_rmse: p.rel_rmse,
+                        point: p.clone(),
                         reference_s: t,
                         ratio: t / p.render_s().max(1e-9),
                         floor,
@@ -382,10 +370,10 @@ impl std::fmt::Display for Speedup {
             "{:<11} {:>5} spp {:>7.3} s (+{:.3} s set-up)  error {:>6.2} %  reference needs \
              {:>7.3} s  ({:.2}×; {:.2}× with set-up)",
             self.method.name(),
-            self.budget,
-            self.render_s(),
-            self.setup_s,
-            100.0 * self.rel_rmse,
+            self.point.budget,
+            self.point.render_s(),
+            self.point.setup_s,
+            100.0 * self.point.rel_rmse,
             self.reference_s,
             self.ratio,
             self.ratio_with_setup(),
@@ -796,10 +784,10 @@ pub fn report_blocks(doc: &CompareDoc, out: &Path) -> Vec<Block> {
                 .map(|p| {
                     vec![
                         p.method.name().to_string(),
-                        p.budget.to_string(),
-                        num(Some(p.render_s())),
-                        num(Some(p.setup_s)),
-                        pct(Some(p.rel_rmse)),
+                        p.point.budget.to_string(),
+                        num(Some(p.point.render_s())),
+                        num(Some(p.point.setup_s)),
+                        pct(Some(p.point.rel_rmse)),
                         num(Some(p.reference_s)),
                         format!("{:.2}×", p.ratio),
                         format!("{:.2}×", p.ratio_with_setup()),
@@ -1024,10 +1012,7 @@ fn no_savings_text(doc: &CompareDoc) -> String {
             ),
             EffectKind::CollimatedProfile | EffectKind::DiffuseProfile => facts.push(format!(
                 "a {} light, so one basis",
-                match doc.render.light.kind {
-                    crate::render::scene::LightKind::Collimated => "collimated",
-                    crate::render::scene::LightKind::Diffuse => "diffuse",
-                }
+                doc.render.light.kind.name()
             )),
             EffectKind::AlbedoAggregation | EffectKind::KernelSimulation => {}
         }
@@ -1201,11 +1186,11 @@ pub fn verdict(doc: &CompareDoc) -> String {
             ". At equal error{pass} learned renders {} than the reference ({} error at {} spp: \
              {} against the reference's {}; with its {} set-up counted, {})",
             how(s.ratio),
-            pct(Some(s.rel_rmse)),
-            s.budget,
-            secs(s.render_s()),
+            pct(Some(s.point.rel_rmse)),
+            s.point.budget,
+            secs(s.point.render_s()),
             secs(s.reference_s),
-            secs(s.setup_s),
+            secs(s.point.setup_s),
             how(s.ratio_with_setup()),
         ));
     }

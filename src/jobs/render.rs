@@ -590,21 +590,15 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                         method
                     };
                     let key = format!("{hash}/{tag}/{}", opts.analysis);
-                    let cached = opts
-                        .materials
-                        .lock()
-                        .unwrap_or_else(|e| e.into_inner())
-                        .get(&key)
-                        .cloned();
-                    let material = match cached {
-                        Some(m) => m,
-                        None => {
-                            let m = Arc::new(Material::new(albedo.clone(), density)?);
-                            opts.materials
-                                .lock()
-                                .unwrap_or_else(|e| e.into_inner())
-                                .insert(key, m.clone());
-                            m
+                    let material = {
+                        let mut cache = opts.materials.lock().unwrap_or_else(|e| e.into_inner());
+                        match cache.get(&key) {
+                            Some(m) => m.clone(),
+                            None => {
+                                let m = Arc::new(Material::new(albedo.clone(), density)?);
+                                cache.insert(key, m.clone());
+                                m
+                            }
                         }
                     };
                     let sv = SvBssrdf::on(

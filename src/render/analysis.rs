@@ -28,7 +28,7 @@
 //! and the report each call it; `RenderOptions::analysis = false` turns the
 //! skips off (the full machinery, for measuring what the skips save).
 
-use super::scene::{LightKind, Scene};
+use super::scene::Scene;
 use crate::forward::maps::TexelMap;
 use serde::{Deserialize, Serialize};
 
@@ -159,10 +159,7 @@ pub fn analyse(scene: &Scene, skip: bool) -> Plan {
     let incidence = scene.light.incidence();
     let light = format!(
         "the light is a {} disk of radius {} MFP",
-        match scene.light {
-            LightKind::Collimated => "collimated",
-            LightKind::Diffuse => "diffuse",
-        },
+        scene.light.name(),
         scene.light_radius
     );
     let basis = |kind: Incidence, name: &str| {

@@ -195,6 +195,7 @@ impl Settings {
 /// The radial importance sampler of one pixel: the basis profile at
 /// (α_s, ρ_s), p(x) = Σ A_k x^n e^{−B_k x} at unit density (x = ρr), as two
 /// mixtures (single: n = 0, multiple: n = 1).
+#[derive(Debug)]
 struct RadialSampler {
     /// The single- and multiple-scattering mixtures' terms, flattened and
     /// padded to lanes of 4 (padding terms have zero weight): rates B_k,
@@ -364,29 +365,52 @@ impl SvBssrdf {
     /// p(x_i) = p(r)/(m·2π·r), m the profile mass below the cut
     /// (the `importance` strategy of the module docs over the whole plane).
     pub fn sample_entry(&self, xe: [f64; 2], u: [f64; 2]) -> EntrySample {
-        let s = self.entry_sampler(xe);
-        let w = s.entry_window();
-        let r = s.sample(u[0], w);
-        let phi = 2.0 * PI * u[1];
-        let xi = [xe[0] + r * phi.cos(), xe[1] + r * phi.sin()];
-        EntrySample {
-            xi,
-            pdf: s.area_pdf(r, PI, w),
-        }
+        self.entry_sampler(xe).sample(u)
     }
 
     /// The area density (1/MFP²) with which [`SvBssrdf::sample_entry`]
     /// draws `xi` for `xe` (for multiple importance sampling).
     pub fn entry_pdf(&self, xi: [f64; 2], xe: [f64; 2]) -> f64 {
-        let s = self.entry_sampler(xe);
-        let r = (xi[0] - xe[0]).hypot(xi[1] - xe[1]);
-        s.area_pdf(r, PI, s.entry_window())
+        self.entry_sampler(xe).pdf(xi)
     }
 
-    fn entry_sampler(&self, xe: [f64; 2]) -> RadialSampler {
+    /// The entry-point sampler of exit point `xe`, for drawing many x_i
+    /// (its radial profile is built once; [`SvBssrdf::sample_entry`] builds
+    /// it per call).
+    pub fn entry_sampler(&self, xe: [f64; 2]) -> EntrySampler {
         let c = self.channels();
         let alpha = (0..c).map(|k| self.albedo_at(k, xe[0], xe[1])).sum::<f64>() / c as f64;
-        RadialSampler::new(self, alpha, self.density_at(xe[0], xe[1]))
+        let radial = RadialSampler::new(self, alpha, self.density_at(xe[0], xe[1]));
+        let window = radial.entry_window();
+        EntrySampler { xe, radial, window }
+    }
+}
+
+/// Entry points x_i for one exit point x_e ([`SvBssrdf::entry_sampler`]).
+#[derive(Debug)]
+pub struct EntrySampler {
+    xe: [f64; 2],
+    radial: RadialSampler,
+    /// The r-window up to the cut and the profile mass on it.
+    window: (f64, f64, f64),
+}
+
+impl EntrySampler {
+    /// Draws x_i from two uniform numbers in [0, 1) ([`SvBssrdf::sample_entry`]).
+    pub fn sample(&self, u: [f64; 2]) -> EntrySample {
+        let r = self.radial.sample(u[0], self.window);
+        let phi = 2.0 * PI * u[1];
+        let xe = self.xe;
+        EntrySample {
+            xi: [xe[0] + r * phi.cos(), xe[1] + r * phi.sin()],
+            pdf: self.radial.area_pdf(r, PI, self.window),
+        }
+    }
+
+    /// The area density (1/MFP²) of `xi`.
+    pub fn pdf(&self, xi: [f64; 2]) -> f64 {
+        let r = (xi[0] - self.xe[0]).hypot(xi[1] - self.xe[1]);
+        self.radial.area_pdf(r, PI, self.window)
     }
 }
 
