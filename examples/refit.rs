@@ -14,6 +14,7 @@ fn main() -> svkernel::Result<()> {
         distances: vec![0.5, 1.0, 2.0],
         paths: 2_000_000,
         seed: 11,
+        runs: Vec::new(),
         ..svkernel::jobs::shipped::training_config()
     };
     config.validate()?;

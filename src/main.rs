@@ -9,7 +9,7 @@ use std::time::Duration;
 use svkernel::forward::kernel::{self, KernelConfig, KernelDoc, PairGrid};
 use svkernel::forward::medium::{Medium, Source};
 use svkernel::forward::profile::{self, DEFAULT_MAX_EVENTS, Engine, ProfileConfig, ProfileDoc};
-use svkernel::forward::runner::{RunOptions, Shard, chunk_range};
+use svkernel::forward::runner::{RunOptions, Shard, chunk_range, shard_range};
 use svkernel::forward::tally::RadialBins;
 use svkernel::jobs::render::Target;
 use svkernel::jobs::shipped::{Models, Shipped, cache_dir};
@@ -473,6 +473,11 @@ struct KernelArgs {
     nv: usize,
     #[arg(long, default_value_t = PairGrid::default().extent)]
     extent: f64,
+    /// Plan the simulation so that every cell gets at least this many
+    /// effective contributing paths: pilot walks choose per cell a flight
+    /// stretch and a path count (then `--paths` is the most paths of one run).
+    #[arg(long)]
+    min_paths: Option<f64>,
     #[command(flatten)]
     run: RunArgs,
 }
@@ -545,10 +550,32 @@ fn simulate_kernels(a: KernelArgs) -> Result<()> {
             nv: a.nv,
             extent: a.extent,
         },
+        runs: Vec::new(),
     };
     config.validate()?;
-    let (tally, wall_s) = config.run(shard, &opts)?;
-    let chunks = vec![chunk_range(config.paths, shard)];
+    let (config, tally, wall_s) = match a.min_paths {
+        None => {
+            let (tally, wall_s) = config.run(shard, &opts)?;
+            (config, tally, wall_s)
+        }
+        Some(target) => {
+            let plan = kernel::PlanOptions {
+                target,
+                max_paths: a.run.paths,
+                ..Default::default()
+            };
+            let (planned, cells) = config.plan(&plan, opts.progress)?;
+            print_plan(&planned, &cells);
+            if shard.is_some() {
+                // Top-ups need the whole tally: a shard runs the plan as is.
+                let (tally, wall_s) = planned.run(shard, &opts)?;
+                (planned, tally, wall_s)
+            } else {
+                run_with_top_ups(planned, target, a.run.paths, &a.run.out, &opts)?
+            }
+        }
+    };
+    let chunks = vec![shard_range(config.chunks(), shard)];
     let doc = KernelDoc::new(config, shard, chunks, tally, wall_s, Provenance::current());
     svkernel::jobs::store::write_json_compact_atomic(&a.run.out, &doc)?;
     remove_checkpoint(&a.run.out)?;
@@ -556,18 +583,125 @@ fn simulate_kernels(a: KernelArgs) -> Result<()> {
     Ok(())
 }
 
+/// Runs a planned simulation, then up to [`TOP_UPS`] rounds of
+/// [`KernelConfig::top_up`] where cells fell short. Each finished round is
+/// kept in `OUT.rounds` (configuration and tally), so that `--resume` after
+/// a kill loses at most the running round's last checkpoint interval.
+fn run_with_top_ups(
+    planned: KernelConfig,
+    target: f64,
+    max_paths: u64,
+    out: &std::path::Path,
+    opts: &RunOptions,
+) -> Result<(KernelConfig, kernel::KernelTally, f64)> {
+    #[derive(serde::Serialize, serde::Deserialize)]
+    struct Rounds {
+        plan: KernelConfig,
+        config: KernelConfig,
+        tally: kernel::KernelTally,
+        wall_s: f64,
+        round: usize,
+    }
+    const TOP_UPS: usize = 3;
+    let rounds_path = {
+        let mut s = out.as_os_str().to_owned();
+        s.push(".rounds");
+        PathBuf::from(s)
+    };
+    let kept: Option<Rounds> = if opts.resume && rounds_path.exists() {
+        let r: Rounds = svkernel::jobs::store::read_json(&rounds_path)?;
+        (r.plan == planned).then_some(r)
+    } else {
+        None
+    };
+    let mut state = match kept {
+        Some(r) => r,
+        None => {
+            let (tally, wall_s) = planned.run(None, opts)?;
+            Rounds {
+                plan: planned.clone(),
+                config: planned,
+                tally,
+                wall_s,
+                round: 0,
+            }
+        }
+    };
+    while state.round < TOP_UPS {
+        // The finished round is kept; its chunk checkpoint is spent.
+        svkernel::jobs::store::write_json_compact_atomic(&rounds_path, &state)?;
+        remove_checkpoint(out)?;
+        let Some(grown) = state.config.top_up(&state.tally, target, max_paths) else {
+            break;
+        };
+        let range = (state.config.chunks(), grown.chunks());
+        eprintln!(
+            "top-up {}: {} more paths for {} cells below {target} effective paths",
+            state.round + 1,
+            grown.paths - state.config.paths,
+            grown.runs[state.config.runs.len()..]
+                .iter()
+                .map(|r| r.distances.len())
+                .sum::<usize>()
+        );
+        let (extra, wall_s) = grown.run_chunks(range, opts)?;
+        use svkernel::forward::runner::Tally as _;
+        state.tally.merge(&extra);
+        state.wall_s += wall_s;
+        state.config = grown;
+        state.round += 1;
+    }
+    if rounds_path.exists() {
+        std::fs::remove_file(&rounds_path)
+            .with_context(|| format!("removing {}", rounds_path.display()))?;
+    }
+    Ok((state.config, state.tally, state.wall_s))
+}
+
+fn print_plan(config: &KernelConfig, cells: &[kernel::PlannedCell]) {
+    use std::io::Write;
+    let mut text = format!(
+        "plan: {} runs, {:.3e} paths\n   α        d   stretch  bias forced   pilot paths → contributing   expected effective\n",
+        config.runs.len(),
+        config.paths as f64
+    );
+    for c in cells {
+        text += &format!(
+            "{:6.4} {:8.3} {:9.3} {:5.2} {:6} {:13} → {:12} {:20.0}\n",
+            c.albedo,
+            c.d,
+            c.flights.stretch,
+            c.flights.bias,
+            c.flights.forced,
+            c.pilot_paths,
+            c.pilot_contributing,
+            c.expected
+        );
+    }
+    let _ = std::io::stderr().lock().write_all(text.as_bytes());
+}
+
 fn print_kernel_summary(doc: &KernelDoc) {
     use std::io::Write;
     let mut text = format!(
-        "{} paths × {} albedos in {:.2} s\n   α        d   contributing   mean n   mean u (all/first/last)\n",
+        "{} paths × {} albedos in {:.2} s\n   α        d   contributing  effective stretch  bias   mean n   mean u (all/first/last)\n",
         doc.paths,
         doc.config.albedos.len(),
         doc.wall_s
     );
     for c in &doc.summary {
         text += &format!(
-            "{:6.4} {:8.3} {:14} {:8.1}   {:+.3} / {:+.3} / {:+.3}\n",
-            c.albedo, c.d, c.paths, c.mean_vertices, c.mean_u[0], c.mean_u[1], c.mean_u[2]
+            "{:6.4} {:8.3} {:13} {:10.0} {:7.3} {:5.2} {:8.1}   {:+.3} / {:+.3} / {:+.3}\n",
+            c.albedo,
+            c.d,
+            c.paths,
+            c.effective_paths,
+            c.flights.stretch,
+            c.flights.bias,
+            c.mean_vertices,
+            c.mean_u[0],
+            c.mean_u[1],
+            c.mean_u[2]
         );
     }
     let _ = std::io::stdout().lock().write_all(text.as_bytes());

@@ -2,13 +2,13 @@
 //! law, the sensitivity identity, hard cases.
 
 use svkernel::forward::kernel::{
-    KernelConfig, KernelDoc, KernelTally, PairGrid, VertexClass, merge,
+    KernelConfig, KernelDoc, KernelRun, KernelTally, PairGrid, PlanOptions, VertexClass, merge,
 };
 use svkernel::forward::maps::{AlbedoMap, TexelMap};
 use svkernel::forward::medium::{Medium, Source};
 use svkernel::forward::rng::{PathRng, threshold_u32};
-use svkernel::forward::runner::{RunOptions, Shard, Tally, chunk_range};
-use svkernel::forward::walk::{AlbedoField, Fate, launch, walk_general};
+use svkernel::forward::runner::{RunOptions, Shard, Tally, shard_range};
+use svkernel::forward::walk::{AlbedoField, Fate, Flights, launch, walk_general};
 use svkernel::provenance::Provenance;
 use svkernel::testing::Z_MC;
 
@@ -25,6 +25,7 @@ fn config(albedos: &[f64], distances: &[f64], density: f64, paths: u64, seed: u6
         seed,
         max_events: 100_000,
         grid: PairGrid::default(),
+        runs: Vec::new(),
     }
 }
 
@@ -33,7 +34,7 @@ fn doc(c: &KernelConfig, shard: Option<Shard>) -> KernelDoc {
     KernelDoc::new(
         c.clone(),
         shard,
-        vec![chunk_range(c.paths, shard)],
+        vec![shard_range(c.chunks(), shard)],
         tally,
         wall,
         Provenance::current(),
@@ -73,6 +74,145 @@ fn one_vs_many_threads_and_shards_are_bitwise_identical() {
         t.merge(&c.simulate_chunk(k));
     }
     assert_eq!(t, many);
+}
+
+/// `c` planned as one run per albedo with flights `flights` over every distance.
+fn transformed(c: &KernelConfig, flights: Flights, paths: u64) -> KernelConfig {
+    let runs: Vec<KernelRun> = (0..c.albedos.len())
+        .map(|ia| KernelRun {
+            albedo: ia,
+            distances: (0..c.distances.len()).collect(),
+            flights,
+            unit_log2: 20,
+            paths,
+        })
+        .collect();
+    KernelConfig {
+        paths: runs.iter().map(|r| r.paths).sum(),
+        runs,
+        ..c.clone()
+    }
+}
+
+#[test]
+fn planned_runs_are_bitwise_identical_for_threads_and_shards() {
+    let flights = Flights {
+        stretch: 0.8,
+        bias: 0.5,
+        forced: 1,
+    };
+    let c = transformed(
+        &config(&[0.3, 0.8], &[0.5, 3.0], 1.0, 1, 5),
+        flights,
+        2 * 16384 + 77,
+    );
+    c.validate().unwrap();
+    assert_eq!(c.chunks(), 6);
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap()
+        .install(|| c.run(None, &RunOptions::default()).unwrap().0);
+    let many = c.run(None, &RunOptions::default()).unwrap().0;
+    assert_eq!(one, many);
+    let shards: Vec<_> = (0..4)
+        .map(|k| {
+            let s = Shard { index: k, count: 4 };
+            (std::path::PathBuf::from(format!("s{k}")), doc(&c, Some(s)))
+        })
+        .collect();
+    let merged = merge(&shards, Provenance::current()).unwrap();
+    assert_eq!(merged.tally, many);
+    assert_eq!(merged.shard, None);
+    // Every run reached its cells, with unequal weights.
+    for row in &many.cells {
+        for cell in row {
+            assert!(cell.paths > 0 && cell.effective_paths() < cell.paths as f64);
+        }
+    }
+}
+
+#[test]
+fn stretched_flights_are_unbiased() {
+    // The weighted histograms of walks with stretched, shortened and
+    // outward-biased flights against the analog walk's, bin by bin (χ² with
+    // both errors), and their whole-plane moments.
+    let analog = config(&[0.7], &[0.6, 2.5], 1.0, 600_000, 31);
+    let da = doc(&analog, None);
+    for (stretch, bias, forced, seed) in [(0.7, 0.0, 0, 32), (1.4, 0.0, 0, 33), (1.0, 0.6, 2, 34)] {
+        let flights = Flights {
+            stretch,
+            bias,
+            forced,
+        };
+        let c = transformed(&config(&[0.7], &[0.6, 2.5], 1.0, 1, seed), flights, 600_000);
+        let db = doc(&c, None);
+        for id in 0..2 {
+            let n_eff = db.tally.cells[0][id].effective_paths();
+            assert!(n_eff > 300.0, "{flights:?} d {id}: {n_eff}");
+            for class in VertexClass::ALL {
+                let (ha, hb) = (da.histogram(0, id, class), db.histogram(0, id, class));
+                let (c2, n) = chi2(&ha, &hb);
+                assert!(
+                    c2 <= n as f64 + Z_MC * (2.0 * n as f64).sqrt() + 0.1 * n as f64,
+                    "{flights:?} d {} {class:?}: χ² {c2} over {n} bins",
+                    ha.d
+                );
+                // Means of u against 5 standard errors of the mean
+                // (√(mean v² + 0.5)/√n_eff bounds the spread of u).
+                let tol = 5.0 * (ha.mean_v2 + 0.5).sqrt() / n_eff.sqrt();
+                assert!(
+                    (ha.mean_u - hb.mean_u).abs() < tol,
+                    "{flights:?} d {} {class:?}: mean u {} against {} (tol {tol})",
+                    ha.d,
+                    hb.mean_u,
+                    ha.mean_u
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn a_plan_fills_the_cells_analog_walks_miss() {
+    // α = 0.2: analog paths almost never leave 8 MFP away (≈ 1 in 10⁷ in
+    // this bin); the plan stretches flights there and fills the cell.
+    let c = config(&[0.2], &[1.0, 8.0], 1.0, 1, 41);
+    let opts = PlanOptions {
+        target: 300.0,
+        max_paths: 4_000_000,
+        ..Default::default()
+    };
+    let (planned, cells) = c.plan(&opts, false).unwrap();
+    assert_eq!(cells.len(), 2);
+    let far = cells.iter().find(|p| p.d == 8.0).unwrap();
+    assert_ne!(far.flights, Flights::ANALOG, "{far:?}");
+    assert!(planned.paths <= 2 * opts.max_paths);
+    // Top-ups correct what the pilots misjudged.
+    let (mut config, mut tally) = (
+        planned.clone(),
+        planned.run(None, &RunOptions::default()).unwrap().0,
+    );
+    for _ in 0..3 {
+        let Some(grown) = config.top_up(&tally, opts.target, opts.max_paths) else {
+            break;
+        };
+        let range = (config.chunks(), grown.chunks());
+        tally.merge(&grown.run_chunks(range, &RunOptions::default()).unwrap().0);
+        config = grown;
+    }
+    // The tally of the grown plan run at once is the same, bitwise.
+    assert_eq!(config.run(None, &RunOptions::default()).unwrap().0, tally);
+    for id in 0..2 {
+        let n_eff = tally.cells[0][id].effective_paths();
+        assert!(
+            n_eff > 0.5 * opts.target,
+            "cell d = {}: {n_eff} effective paths",
+            c.distances[id]
+        );
+    }
+    // Planning is deterministic.
+    assert_eq!(c.plan(&opts, false).unwrap().0, planned);
 }
 
 /// χ² between two independent normalised histograms over bins with data.

@@ -3,7 +3,7 @@
 # last and all scattering vertices, multiple scattering) of the default
 # medium (η = 1.5, g = 0.3, ρ = 1) under a pencil beam, at 8 albedos and 10
 # pair distances (bins d·(1 ± 0.1)), 2e7 paths walked once per albedo
-# (common random numbers across albedos). About 80 s on 2 cores.
+# (common random numbers across albedos). About 40–80 s on 2 cores.
 #
 #   bash tools/make_kernels.sh                 # the shipped training set
 #   SHARD=k/N bash tools/make_kernels.sh       # one slice (merge with `svkernel merge`)

@@ -29,7 +29,9 @@ use serde::{Deserialize, Serialize};
 pub const RIDGE: f64 = 0.1;
 /// Relative tolerance (ftol, xtol) of the joint fit.
 pub const META_TOL: f64 = 1e-3;
-/// Cells with fewer contributing paths are left out of the fits.
+/// Cells with fewer effective contributing paths
+/// ([`crate::forward::kernel::CellTally::effective_paths`]) are left out of
+/// the fits.
 pub const MIN_PATHS: u64 = 1000;
 
 /// The histogram of cell (ia, id) of `doc` in absolute pair-frame MFP at the
@@ -71,7 +73,8 @@ pub fn fit_histogram(h: NormalizedHistogram) -> KernelHistogram {
         sigma: h.count_sigma,
         overflow: h.overflow,
         overflow_sigma: h.overflow_count_sigma,
-        paths: h.paths,
+        // The σ floor is one path's mass: of an effective (analog) path.
+        paths: h.effective_paths.round() as u64,
     }
 }
 
@@ -136,13 +139,14 @@ impl Cell {
     }
 }
 
-/// The cells of `doc` (one vertex class) with at least [`MIN_PATHS`] paths.
+/// The cells of `doc` (one vertex class) with at least [`MIN_PATHS`]
+/// effective paths.
 /// The document must be at unit density (the meta-model is trained there).
 pub fn cells(doc: &KernelDoc, class: VertexClass) -> Vec<Cell> {
     let mut out = Vec::new();
     for (ia, a) in doc.config.albedos.iter().enumerate() {
         for id in 0..doc.config.distances.len() {
-            if doc.tally.cells[ia][id].paths >= MIN_PATHS {
+            if doc.tally.cells[ia][id].effective_paths() >= MIN_PATHS as f64 {
                 out.push(Cell::measured(*a, doc.histogram(ia, id, class)));
             }
         }

@@ -12,8 +12,13 @@
 //! out: maps are 2.5D), |s| folded by the mirror symmetry. Three classes are
 //! tallied: the **first** vertex, the **last** vertex and **all** vertices.
 //!
-//! Every contributing path has weight 1 (analog walk), so the "all" density
-//! is E[#vertices in a cell | the path contributes]. A vertex at x is exactly
+//! Every contributing path of an analog walk has weight 1, so the "all"
+//! density is E[#vertices in a cell | the path contributes]. Cells that analog
+//! paths reach too rarely (low albedo and long or very short pairs) are filled
+//! by a *planned* simulation ([`KernelConfig::plan`]): runs per albedo whose
+//! free flights are transformed ([`walk_transformed`]), each path carrying its
+//! likelihood ratio as an integer weight, so that every sum below is the
+//! analog one in expectation and still exact to merge. A vertex at x is exactly
 //! where the path reads α(x): for the analog walk the probability of a path
 //! is a product of α(x_j) over its vertices times factors that do not depend
 //! on α, hence ∂ ln M(x_e)/∂ ln α(cell) = E[#vertices in the cell | contributes]
@@ -30,16 +35,18 @@
 //! one at (ρd, α, 1) exactly — the density scaling law, tested bin by bin.
 //!
 //! # Determinism
-//! Integer counts (per bin: Σ n_b and Σ n_b² over contributing paths, for
-//! standard errors) and fixed-point moment sums: mergeable exactly, so results
+//! Integer sums (per bin: Σ w·n_b and Σ w²·n_b² over contributing paths, for
+//! standard errors, with w an integer weight: 1 for analog paths, the
+//! stochastically rounded likelihood ratio in units of 2^−`unit_log2` for a
+//! stretched run) and fixed-point moment sums: mergeable exactly, so results
 //! are bitwise identical for any thread count and for shards merged with
-//! [`merge`]. Every albedo of a simulation reuses the path's stream
-//! (common random numbers across albedos).
+//! [`merge`]. Without a plan every albedo reuses the path's stream (common
+//! random numbers across albedos); a planned run has streams of its own.
 
 use super::medium::Medium;
-use super::rng::{PathRng, threshold_u32};
-use super::runner::{self, RunOptions, Shard, Tally, chunk_paths, chunk_range};
-use super::walk::{Fate, UniformAlbedo, launch, walk_general};
+use super::rng::{PathRng, splitmix64, threshold_u32, unit_f64};
+use super::runner::{self, RunOptions, Shard, Tally, chunk_paths, shard_range};
+use super::walk::{Fate, Flights, UniformAlbedo, launch, walk_transformed};
 use crate::error::{Error, Result};
 use crate::forward::medium::Source;
 use crate::provenance::Provenance;
@@ -49,7 +56,7 @@ use std::path::PathBuf;
 /// Format tag of kernel documents.
 pub const KERNEL_FORMAT: &str = "svkernel.kernels";
 /// Version of the kernel document format.
-pub const KERNEL_VERSION: u32 = 2;
+pub const KERNEL_VERSION: u32 = 3;
 /// Fixed-point resolution of the moment sums (2⁻¹⁶ in normalised units).
 const MOMENT_Q: f64 = 65536.0;
 
@@ -113,24 +120,25 @@ impl PairGrid {
 
 pub use crate::pair::VertexClass;
 
-/// Counts of one vertex class in one (albedo, distance) cell.
+/// Counts of one vertex class in one (albedo, distance) cell, each path
+/// weighted by its integer weight w (1 for an analog walk).
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ClassTally {
-    /// Σ over contributing paths of the path's vertex count per bin; the last
-    /// entry is the overflow (outside the grid).
+    /// Σ over contributing paths of w × the path's vertex count per bin; the
+    /// last entry is the overflow (outside the grid).
     #[serde(with = "sparse")]
-    pub count: Vec<u64>,
-    /// Σ of the squared per-path counts, per bin (for standard errors).
+    pub count: Vec<u128>,
+    /// Σ of w² × the squared per-path counts, per bin (for standard errors).
     #[serde(with = "sparse")]
-    pub sq: Vec<u64>,
-    /// Σ over contributing paths of the per-path count in the bin times the
+    pub sq: Vec<u128>,
+    /// Σ over contributing paths of w² × the per-path count in the bin × the
     /// path's count of this class's vertices (n for "all", 1 for first and
     /// last), per bin: the covariance term of the ratio estimator's error.
     #[serde(with = "sparse")]
-    pub cross: Vec<u64>,
-    /// Σ u and Σ v² over the vertices, fixed point (2⁻¹⁶).
-    pub sum_u_q: i64,
-    pub sum_v2_q: u64,
+    pub cross: Vec<u128>,
+    /// Σ w·u and Σ w·v² over the vertices, fixed point (2⁻¹⁶).
+    pub sum_u_q: i128,
+    pub sum_v2_q: u128,
 }
 
 impl ClassTally {
@@ -158,28 +166,30 @@ impl ClassTally {
         self.sum_v2_q += o.sum_v2_q;
     }
 
-    /// Adds one path whose vertices of this class fall in `bins` (sorted;
-    /// all of the path's vertices of this class, overflow included).
-    fn add_path(&mut self, bins: &[usize]) {
-        let n = bins.len() as u64;
+    /// Adds one path of weight `w` whose vertices of this class fall in
+    /// `bins` (sorted; all of the path's vertices of this class, overflow
+    /// included).
+    fn add_path(&mut self, bins: &[usize], w: u128) {
+        let n = bins.len() as u128;
+        let w2 = w * w;
         let mut k = 0;
         while k < bins.len() {
             let b = bins[k];
-            let run = bins[k..].iter().take_while(|&&x| x == b).count() as u64;
-            self.count[b] += run;
-            self.sq[b] += run * run;
-            self.cross[b] += run * n;
+            let run = bins[k..].iter().take_while(|&&x| x == b).count() as u128;
+            self.count[b] += w * run;
+            self.sq[b] += w2 * run * run;
+            self.cross[b] += w2 * run * n;
             k += run as usize;
         }
     }
 
-    fn add_moment(&mut self, u: f64, v: f64) {
-        self.sum_u_q += (u * MOMENT_Q).round() as i64;
-        self.sum_v2_q += (v * v * MOMENT_Q).round() as u64;
+    fn add_moment(&mut self, u: f64, v: f64, w: u128) {
+        self.sum_u_q += w as i128 * (u * MOMENT_Q).round() as i128;
+        self.sum_v2_q += w * (v * v * MOMENT_Q).round() as u128;
     }
 
-    /// Vertices tallied (overflow included).
-    pub fn vertices(&self) -> u64 {
+    /// Weighted vertices tallied (overflow included): Σ w·n_c.
+    pub fn vertices(&self) -> u128 {
         self.count.iter().sum()
     }
 
@@ -198,9 +208,12 @@ impl ClassTally {
 pub struct CellTally {
     /// Contributing paths.
     pub paths: u64,
-    /// Σ n and Σ n² of the paths' scattering counts.
-    pub events: u64,
-    pub events_sq: u64,
+    /// Σ w and Σ w² of their weights (both equal `paths` for analog paths).
+    pub weight: u128,
+    pub weight_sq: u128,
+    /// Σ w·n and Σ w²·n² of the paths' scattering counts.
+    pub events: u128,
+    pub events_sq: u128,
     /// all, first, last.
     pub classes: [ClassTally; 3],
 }
@@ -209,29 +222,46 @@ impl CellTally {
     fn new(grid: &PairGrid) -> Self {
         CellTally {
             paths: 0,
+            weight: 0,
+            weight_sq: 0,
             events: 0,
             events_sq: 0,
             classes: std::array::from_fn(|_| ClassTally::new(grid)),
         }
     }
+
+    /// Kish's effective number of paths (Σw)²/Σw²: the analog paths that
+    /// would give the same precision (`paths` for an analog walk).
+    pub fn effective_paths(&self) -> f64 {
+        if self.weight_sq == 0 {
+            return 0.0;
+        }
+        let w = self.weight as f64;
+        w * w / self.weight_sq as f64
+    }
 }
 
 impl CellTally {
-    /// Adds one contributing path from x_i = 0 to `exit` with scattering
-    /// vertices `vertices` (at least one), in its own pair frame with
-    /// normalisation length `lambda`. `bins` is scratch space.
+    /// Adds one contributing path of weight `w` (1 for an analog walk) from
+    /// x_i = 0 to `exit` with scattering vertices `vertices` (at least one),
+    /// in its own pair frame with normalisation length `lambda`. `bins` is
+    /// scratch space.
     pub fn add_path(
         &mut self,
         grid: &PairGrid,
         exit: [f64; 2],
         lambda: f64,
         vertices: &[[f64; 2]],
+        w: u64,
         bins: &mut Vec<usize>,
     ) {
-        let n = vertices.len() as u64;
+        let w = w as u128;
+        let n = vertices.len() as u128;
         self.paths += 1;
-        self.events += n;
-        self.events_sq += n * n;
+        self.weight += w;
+        self.weight_sq += w * w;
+        self.events += w * n;
+        self.events_sq += w * w * n * n;
         let d = exit[0].hypot(exit[1]);
         let (ex, ey) = (exit[0] / d, exit[1] / d);
         let frame = |p: [f64; 2]| {
@@ -243,24 +273,26 @@ impl CellTally {
         for p in vertices {
             let (u, v) = frame(*p);
             bins.push(grid.index(u, v));
-            self.classes[VertexClass::All.slot()].add_moment(u, v);
+            self.classes[VertexClass::All.slot()].add_moment(u, v, w);
         }
         bins.sort_unstable();
-        self.classes[VertexClass::All.slot()].add_path(bins);
+        self.classes[VertexClass::All.slot()].add_path(bins, w);
         for (class, p) in [
             (VertexClass::First, vertices[0]),
             (VertexClass::Last, vertices[vertices.len() - 1]),
         ] {
             let (u, v) = frame(p);
             let c = &mut self.classes[class.slot()];
-            c.add_path(&[grid.index(u, v)]);
-            c.add_moment(u, v);
+            c.add_path(&[grid.index(u, v)], w);
+            c.add_moment(u, v, w);
         }
     }
 
     /// Adds another cell's counts.
     pub fn merge(&mut self, b: &CellTally) {
         self.paths += b.paths;
+        self.weight += b.weight;
+        self.weight_sq += b.weight_sq;
         self.events += b.events;
         self.events_sq += b.events_sq;
         for (ca, cb) in self.classes.iter_mut().zip(&b.classes) {
@@ -278,28 +310,33 @@ impl CellTally {
         lambda: f64,
     ) -> NormalizedHistogram {
         let cl = &self.classes[class.slot()];
-        let n = self.paths.max(1) as f64;
-        let total = cl.vertices();
-        let mean_vertices = total as f64 / n;
-        let norm = mean_vertices.max(f64::MIN_POSITIVE);
-        // Σ n_c² over the paths of this class's per-path vertex count n_c.
+        // Σw, Σw·n_c, Σw²·n_c² (Σw² for first and last, n_c = 1).
+        let n = (self.weight as f64).max(f64::MIN_POSITIVE);
+        let total = cl.vertices() as f64;
+        let mean_vertices = total / n;
         let total_sq = match class {
             VertexClass::All => self.events_sq,
-            VertexClass::First | VertexClass::Last => self.paths,
+            VertexClass::First | VertexClass::Last => self.weight_sq,
         } as f64;
+        let n_eff = self.effective_paths().max(1.0);
+        let norm = mean_vertices.max(f64::MIN_POSITIVE);
         // (mass, its standard error, the fit weight's error) of bin b.
         let stat = |b: usize| {
-            let mean_count = cl.count[b] as f64 / n;
-            let m = mean_count / norm;
-            // The ratio estimator m = Σn_b/Σn_c to first order (the delta
-            // method): Var(m) ≈ Var(n_b − m·n_c)/(N·n̄_c²), the sample variance
-            // of z = n_b − m·n_c, whose mean is 0 at this m.
-            let ez2 = (cl.sq[b] as f64 - 2.0 * m * cl.cross[b] as f64 + m * m * total_sq) / n;
-            let count_var = (cl.sq[b] as f64 / n - mean_count * mean_count).max(0.0);
+            let (count, sq, cross) = (cl.count[b] as f64, cl.sq[b] as f64, cl.cross[b] as f64);
+            let m = count / total.max(f64::MIN_POSITIVE);
+            // The ratio estimator m = Σw·n_b/Σw·n_c to first order (the delta
+            // method): Var(m) ≈ Σw²(n_b − m·n_c)²/(Σw·n_c)², from the sums of
+            // z = n_b − m·n_c, whose weighted mean is 0 at this m.
+            let ez2 = sq - 2.0 * m * cross + m * m * total_sq;
+            // The bin's weighted mean count n̄_b = Σw·n_b/Σw, its variance
+            // ≈ Σw²(n_b − n̄_b)²/(Σw)², with Σw²·n_b taken as n̄_b·Σw² (exact
+            // for analog paths).
+            let mean_count = count / n;
+            let count_var = (sq / self.weight_sq.max(1) as f64 - mean_count * mean_count).max(0.0);
             (
                 m,
-                (ez2.max(0.0) / n).sqrt() / norm,
-                (count_var / n).sqrt() / norm,
+                ez2.max(0.0).sqrt() / total.max(f64::MIN_POSITIVE),
+                (count_var / n_eff).sqrt() / norm,
             )
         };
         let bins = grid.bins();
@@ -325,6 +362,7 @@ impl CellTally {
             overflow_sigma,
             overflow_count_sigma,
             paths: self.paths,
+            effective_paths: self.effective_paths(),
             mean_vertices,
             mean_u,
             mean_v2,
@@ -389,9 +427,241 @@ pub struct KernelConfig {
     pub seed: u64,
     pub max_events: u32,
     pub grid: PairGrid,
+    /// A planned simulation ([`KernelConfig::plan`]): the runs that fill the
+    /// cells, each at one albedo with its own flight sampling and path count
+    /// (`paths` is then their sum). Empty: every albedo is walked by the same
+    /// `paths` analog paths.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub runs: Vec<KernelRun>,
+}
+
+/// One run of a planned kernel simulation: `paths` paths walked at albedo
+/// `albedo` (an index into [`KernelConfig::albedos`]) with flights drawn as
+/// `flights` says ([`walk_transformed`]), feeding the distance cells `distances`
+/// (indices into [`KernelConfig::distances`]; a cell is fed by one run).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct KernelRun {
+    pub albedo: usize,
+    pub distances: Vec<usize>,
+    pub flights: Flights,
+    /// Weights are integers in units of 2^−unit_log2: a path of likelihood
+    /// ratio r gets ⌊r·2^unit_log2 + u⌋ with u uniform (unbiased stochastic
+    /// rounding; a path rounded to 0 is dropped — Russian roulette on tiny
+    /// ratios), at most [`MAX_WEIGHT`].
+    pub unit_log2: u32,
+    pub paths: u64,
+}
+
+/// Largest integer weight of a path (2⁴⁰): keeps every Σw²n² of a cell far
+/// inside u128. A path whose weight would exceed it is counted at it (a
+/// ratio 2^(40 − unit_log2); the plan puts the typical weight at 2²⁰).
+pub const MAX_WEIGHT: u64 = 1 << 40;
+/// Typical integer weight of a contributing path in a transformed run (2²⁰):
+/// rounding adds a relative variance of ≈ 2⁻⁴².
+const TYPICAL_WEIGHT_LOG2: f64 = 20.0;
+
+impl KernelRun {
+    /// The stream seed of run `r` under master seed `seed` (distinct from
+    /// the unplanned stream of every path and from every other run).
+    fn seed(seed: u64, r: usize) -> u64 {
+        splitmix64(seed ^ splitmix64(!(r as u64)))
+    }
+}
+
+/// Settings of [`KernelConfig::plan`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct PlanOptions {
+    /// Effective contributing paths wanted in every cell.
+    pub target: f64,
+    /// Most paths of one run.
+    pub max_paths: u64,
+    /// Pilot paths per (albedo, flight sampling), before growing.
+    pub pilot: u64,
+    /// The flight samplings to choose from.
+    pub flights: Vec<Flights>,
+}
+
+impl Default for PlanOptions {
+    fn default() -> Self {
+        PlanOptions {
+            target: 4000.0,
+            max_paths: 2_000_000_000,
+            pilot: 1 << 16,
+            flights: [
+                (1.0, 0.0, 0),
+                (2.0, 0.0, 0),
+                (1.0, 0.5, 0),
+                (1.0, 0.8, 0),
+                (1.0, 0.0, 2),
+                (2.0, 0.0, 2),
+                (1.0, 0.8, 2),
+                (1.0, 0.93, 2),
+            ]
+            .map(|(stretch, bias, forced)| Flights {
+                stretch,
+                bias,
+                forced,
+            })
+            .to_vec(),
+        }
+    }
+}
+
+/// What the pilots measured for one cell of a plan.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PlannedCell {
+    pub albedo: f64,
+    pub d: f64,
+    /// The flight sampling of the run that feeds it.
+    pub flights: Flights,
+    /// Pilot paths with that sampling, and how many contributed here.
+    pub pilot_paths: u64,
+    pub pilot_contributing: u64,
+    /// Effective contributing paths the run should give it.
+    pub expected: f64,
+}
+
+/// A pilot cell needs this many contributing paths before its rate counts.
+const PILOT_MIN_PATHS: u64 = 30;
+/// Stream family of the pilots (`"pilot"`).
+const PILOT_SEED: u64 = 0x70_69_6c_6f_74;
+
+/// What one pilot walk measured.
+struct Pilot {
+    /// Scatterings walked plus one per launch.
+    work: f64,
+    count: Vec<u64>,
+    sum: Vec<f64>,
+    sum_sq: Vec<f64>,
+    weights: Vec<Vec<f64>>,
+}
+
+impl Pilot {
+    fn new(nd: usize) -> Self {
+        Pilot {
+            work: 0.0,
+            count: vec![0; nd],
+            sum: vec![0.0; nd],
+            sum_sq: vec![0.0; nd],
+            weights: vec![Vec::new(); nd],
+        }
+    }
+
+    /// Effective paths of cell `id`.
+    fn ess(&self, id: usize) -> f64 {
+        if self.sum_sq[id] > 0.0 {
+            self.sum[id] * self.sum[id] / self.sum_sq[id]
+        } else {
+            0.0
+        }
+    }
+
+    /// The median contributing weight over the cells `ids` (1 if none).
+    fn median_weight(&self, ids: &[usize]) -> f64 {
+        let mut w: Vec<f64> = ids
+            .iter()
+            .flat_map(|&id| self.weights[id].iter().copied())
+            .collect();
+        if w.is_empty() {
+            return 1.0;
+        }
+        w.sort_by(f64::total_cmp);
+        w[w.len() / 2]
+    }
 }
 
 impl KernelConfig {
+    /// Chunks of the whole simulation ([`runner::CHUNK_PATHS`] paths each;
+    /// with a plan, each run starts a chunk of its own).
+    pub fn chunks(&self) -> u64 {
+        if self.runs.is_empty() {
+            self.paths.div_ceil(runner::CHUNK_PATHS)
+        } else {
+            self.runs
+                .iter()
+                .map(|r| r.paths.div_ceil(runner::CHUNK_PATHS))
+                .sum()
+        }
+    }
+
+    /// The first run of the plan that feeds cell (`ia`, `id`), if any;
+    /// without a plan the analog walk of every cell (`None`).
+    pub fn run_of(&self, ia: usize, id: usize) -> Option<&KernelRun> {
+        self.runs
+            .iter()
+            .find(|r| r.albedo == ia && r.distances.contains(&id))
+    }
+
+    /// Paths launched for cell (`ia`, `id`): all of them without a plan, its
+    /// runs' with one (0 for a cell no run feeds).
+    pub fn launched_for(&self, ia: usize, id: usize) -> u64 {
+        if self.runs.is_empty() {
+            self.paths
+        } else {
+            self.runs
+                .iter()
+                .filter(|r| r.albedo == ia && r.distances.contains(&id))
+                .map(|r| r.paths)
+                .sum()
+        }
+    }
+
+    /// The plan grown where `tally` (of this configuration) fell short: for
+    /// every run with cells below `target` effective paths, a new run (own
+    /// streams, same flights and unit) over those cells with the paths that
+    /// bring the neediest to `target` at the rate seen so far, at most
+    /// `max_paths` (and at least one chunk). `None` if every cell has its
+    /// paths or none can get more. Pilots misjudge heavy-tailed weights;
+    /// this corrects with the real run's numbers.
+    pub fn top_up(&self, tally: &KernelTally, target: f64, max_paths: u64) -> Option<KernelConfig> {
+        let mut extra = Vec::new();
+        for r in &self.runs {
+            let short: Vec<usize> = r
+                .distances
+                .iter()
+                .copied()
+                .filter(|&id| {
+                    // Each cell topped up by its first run only.
+                    self.run_of(r.albedo, id) == Some(r)
+                        && tally.cells[r.albedo][id].effective_paths() < 0.9 * target
+                })
+                .collect();
+            let need = short
+                .iter()
+                .map(|&id| {
+                    let ess = tally.cells[r.albedo][id].effective_paths();
+                    let launched = self.launched_for(r.albedo, id) as f64;
+                    if ess > 0.0 {
+                        ((target / ess - 1.0) * launched).ceil()
+                    } else {
+                        f64::INFINITY
+                    }
+                })
+                .fold(0.0, f64::max);
+            let chunk = runner::CHUNK_PATHS;
+            if short.is_empty() || max_paths < chunk {
+                continue;
+            }
+            extra.push(KernelRun {
+                albedo: r.albedo,
+                distances: short,
+                flights: r.flights,
+                unit_log2: r.unit_log2,
+                paths: (need.min(max_paths as f64) as u64).div_ceil(chunk).max(1) * chunk,
+            });
+        }
+        if extra.is_empty() {
+            return None;
+        }
+        let mut runs = self.runs.clone();
+        runs.extend(extra);
+        Some(KernelConfig {
+            paths: runs.iter().map(|r| r.paths).sum(),
+            runs,
+            ..self.clone()
+        })
+    }
+
     /// The medium at albedo `alpha` (validated).
     pub fn medium(&self, alpha: f64) -> Result<Medium> {
         Medium::new(alpha, self.g, self.eta, self.density, None)
@@ -446,6 +716,9 @@ impl KernelConfig {
         if self.max_events == 0 {
             return Err(Error::param("max_events", 0, ">= 1"));
         }
+        if !self.runs.is_empty() {
+            self.validate_runs()?;
+        }
         if self.grid.nu == 0
             || self.grid.nv == 0
             || self.grid.extent.is_nan()
@@ -463,6 +736,42 @@ impl KernelConfig {
         Ok(())
     }
 
+    fn validate_runs(&self) -> Result<()> {
+        let mut fed = vec![vec![None; self.distances.len()]; self.albedos.len()];
+        for r in &self.runs {
+            let cells_ok = r.albedo < self.albedos.len()
+                && !r.distances.is_empty()
+                && r.distances.iter().all(|&id| {
+                    id < self.distances.len()
+                        && *fed[r.albedo][id].get_or_insert((r.flights, r.unit_log2))
+                            == (r.flights, r.unit_log2)
+                });
+            if !cells_ok {
+                return Err(Error::param(
+                    "runs",
+                    format!("albedo {} distances {:?}", r.albedo, r.distances),
+                    "indices into albedos and distances; the runs of a cell share flights and unit",
+                ));
+            }
+            check_flights(&r.flights, "runs.flights")?;
+            if r.unit_log2 > 60 {
+                return Err(Error::param("runs.unit_log2", r.unit_log2, "<= 60"));
+            }
+            if r.paths == 0 {
+                return Err(Error::param("runs.paths", 0, ">= 1"));
+            }
+        }
+        let total: u64 = self.runs.iter().map(|r| r.paths).sum();
+        if total != self.paths {
+            return Err(Error::param(
+                "paths",
+                format!("{} (the runs sum to {total})", self.paths),
+                "the sum of the runs' paths",
+            ));
+        }
+        Ok(())
+    }
+
     /// The distance bin of an exit at radius r, if any.
     fn distance_bin(&self, r: f64) -> Option<usize> {
         let w = self.rel_width;
@@ -473,6 +782,9 @@ impl KernelConfig {
 
     /// Simulates chunk `c`.
     pub fn simulate_chunk(&self, c: u64) -> KernelTally {
+        if !self.runs.is_empty() {
+            return self.simulate_run_chunk(c);
+        }
         let (first, count) = chunk_paths(self.paths, c);
         let mut tally = KernelTally::new(self);
         let mfp = 1.0 / self.density;
@@ -495,10 +807,15 @@ impl KernelConfig {
             for (ia, (medium, albedo)) in media.iter().enumerate() {
                 let mut rng = base;
                 vertices.clear();
-                let (fate, n) =
-                    walk_general(medium, albedo, self.max_events, start, &mut rng, |v, _| {
-                        vertices.push([v[0], v[1]])
-                    });
+                let (fate, n, _) = walk_transformed(
+                    medium,
+                    albedo,
+                    self.max_events,
+                    Flights::ANALOG,
+                    start,
+                    &mut rng,
+                    |v, _| vertices.push([v[0], v[1]]),
+                );
                 let Fate::Exit { x, y } = fate else { continue };
                 if n < self.min_order {
                     continue;
@@ -512,6 +829,7 @@ impl KernelConfig {
                     [x, y],
                     PairGrid::scale(d, mfp),
                     &vertices,
+                    1,
                     &mut bins,
                 );
             }
@@ -519,13 +837,286 @@ impl KernelConfig {
         tally
     }
 
+    /// Chunk `c` of a planned simulation: the run it falls in, from the
+    /// run's own streams.
+    fn simulate_run_chunk(&self, c: u64) -> KernelTally {
+        let mut tally = KernelTally::new(self);
+        let mut offset = 0;
+        let Some((r, run)) = self.runs.iter().enumerate().find(|(_, run)| {
+            let n = run.paths.div_ceil(runner::CHUNK_PATHS);
+            offset += n;
+            c < offset
+        }) else {
+            return tally;
+        };
+        let local = c - (offset - run.paths.div_ceil(runner::CHUNK_PATHS));
+        let (first, count) = chunk_paths(run.paths, local);
+        let medium = self.medium(self.albedos[run.albedo]).expect("validated");
+        let albedo = UniformAlbedo(threshold_u32(self.albedos[run.albedo]));
+        let mut feeds = vec![false; self.distances.len()];
+        for &id in &run.distances {
+            feeds[id] = true;
+        }
+        let scale = (run.unit_log2 as f64).exp2();
+        let seed = KernelRun::seed(self.seed, r);
+        let mfp = 1.0 / self.density;
+        let mut vertices: Vec<[f64; 2]> = Vec::new();
+        let mut bins: Vec<usize> = Vec::new();
+        for path in first..first + count {
+            tally.paths += 1;
+            let mut rng = PathRng::new(seed, path);
+            let Some(start) = launch(&Source::Pencil, self.eta, &mut rng) else {
+                continue;
+            };
+            vertices.clear();
+            let (fate, n, log_ratio) = walk_transformed(
+                &medium,
+                &albedo,
+                self.max_events,
+                run.flights,
+                start,
+                &mut rng,
+                |v, _| vertices.push([v[0], v[1]]),
+            );
+            let Fate::Exit { x, y } = fate else { continue };
+            let d = x.hypot(y);
+            let Some(id) = self.distance_bin(d).filter(|&id| feeds[id]) else {
+                continue;
+            };
+            if n < self.min_order {
+                continue;
+            }
+            let w = if run.flights == Flights::ANALOG {
+                scale as u64
+            } else {
+                let ratio = log_ratio.exp();
+                let u = unit_f64(rng.next_u32());
+                (ratio * scale + u).floor().min(MAX_WEIGHT as f64) as u64
+            };
+            if w == 0 {
+                continue;
+            }
+            tally.cells[run.albedo][id].add_path(
+                &self.grid,
+                [x, y],
+                PairGrid::scale(d, mfp),
+                &vertices,
+                w,
+                &mut bins,
+            );
+        }
+        tally
+    }
+
+    /// Plans the simulation so that every cell gets at least `opts.target`
+    /// effective contributing paths where `opts.max_paths` allows: for each
+    /// albedo, short pilot walks with every flight sampling of `opts.flights`
+    /// measure each cell's effective paths per unit of work (scatterings
+    /// walked plus one per launch); each cell goes to the sampling that fills
+    /// it cheapest, and each (albedo, sampling) becomes a run with the paths its neediest
+    /// cell asks for (rounded up to whole chunks, at most `max_paths`). A
+    /// pilot that sees too few paths in a cell is repeated with 8× and then
+    /// 64× the paths. Deterministic: the pilots have streams of their own.
+    /// Returns the planned configuration and what the pilots measured.
+    pub fn plan(
+        &self,
+        opts: &PlanOptions,
+        progress: bool,
+    ) -> Result<(KernelConfig, Vec<PlannedCell>)> {
+        let base = KernelConfig {
+            runs: Vec::new(),
+            ..self.clone()
+        };
+        base.validate()?;
+        if opts.flights.is_empty() {
+            return Err(Error::param(
+                "flights",
+                "(none)",
+                "at least one flight sampling",
+            ));
+        }
+        for f in &opts.flights {
+            check_flights(f, "flights")?;
+        }
+        let nd = self.distances.len();
+        let bar =
+            crate::progress::Task::new(progress, "planning", self.albedos.len() as u64, "albedos");
+        let (mut runs, mut cells) = (Vec::new(), Vec::new());
+        for ia in 0..self.albedos.len() {
+            let mut pilot = opts.pilot.max(1);
+            let stats = loop {
+                let stats: Vec<Pilot> = opts
+                    .flights
+                    .iter()
+                    .enumerate()
+                    .map(|(ic, &f)| base.pilot(ia, ic, f, pilot))
+                    .collect();
+                let thin = (0..nd).any(|id| stats.iter().all(|p| p.count[id] < PILOT_MIN_PATHS));
+                if !thin || pilot >= opts.pilot.max(1) * 64 {
+                    break stats;
+                }
+                pilot *= 8;
+            };
+            // Each cell to its cheapest sampling (the first of equals).
+            let mut choice: Vec<(usize, f64)> = Vec::with_capacity(nd);
+            for id in 0..nd {
+                let rate = |p: &Pilot| {
+                    if p.count[id] < PILOT_MIN_PATHS {
+                        0.0
+                    } else {
+                        p.ess(id) / p.work
+                    }
+                };
+                let best = (0..stats.len()).fold(0, |b, ic| {
+                    if rate(&stats[ic]) > rate(&stats[b]) {
+                        ic
+                    } else {
+                        b
+                    }
+                });
+                let r = rate(&stats[best]);
+                // Unreached everywhere: the sampling that saw the most paths.
+                let ic = if r > 0.0 {
+                    best
+                } else {
+                    (0..stats.len()).fold(0, |b, ic| {
+                        if stats[ic].count[id] > stats[b].count[id] {
+                            ic
+                        } else {
+                            b
+                        }
+                    })
+                };
+                let per_path = stats[ic].ess(id) / pilot as f64;
+                choice.push((ic, per_path));
+            }
+            for (ic, pilot_ic) in stats.iter().enumerate() {
+                let ids: Vec<usize> = (0..nd).filter(|&id| choice[id].0 == ic).collect();
+                if ids.is_empty() {
+                    continue;
+                }
+                let need = ids
+                    .iter()
+                    .map(|&id| {
+                        let per_path = choice[id].1;
+                        if per_path > 0.0 {
+                            (opts.target / per_path).ceil().min(u64::MAX as f64) as u64
+                        } else {
+                            u64::MAX
+                        }
+                    })
+                    .max()
+                    .unwrap_or(0);
+                let chunk = runner::CHUNK_PATHS;
+                let paths = need.min(opts.max_paths).div_ceil(chunk).max(1) * chunk;
+                let f = opts.flights[ic];
+                let unit_log2 = if f == Flights::ANALOG {
+                    0
+                } else {
+                    let m = pilot_ic.median_weight(&ids);
+                    (TYPICAL_WEIGHT_LOG2 - m.log2()).round().clamp(0.0, 60.0) as u32
+                };
+                for &id in &ids {
+                    cells.push(PlannedCell {
+                        albedo: self.albedos[ia],
+                        d: self.distances[id],
+                        flights: f,
+                        pilot_paths: pilot,
+                        pilot_contributing: pilot_ic.count[id],
+                        expected: choice[id].1 * paths as f64,
+                    });
+                }
+                runs.push(KernelRun {
+                    albedo: ia,
+                    distances: ids,
+                    flights: f,
+                    unit_log2,
+                    paths,
+                });
+            }
+            bar.set(ia as u64 + 1);
+        }
+        bar.finish();
+        let planned = KernelConfig {
+            paths: runs.iter().map(|r| r.paths).sum(),
+            runs,
+            ..base
+        };
+        planned.validate()?;
+        Ok((planned, cells))
+    }
+
+    /// `paths` pilot paths at albedo `ia` with flights `f` (stream family `ic`).
+    fn pilot(&self, ia: usize, ic: usize, f: Flights, paths: u64) -> Pilot {
+        use rayon::prelude::*;
+        let nd = self.distances.len();
+        let medium = self.medium(self.albedos[ia]).expect("validated");
+        let albedo = UniformAlbedo(threshold_u32(self.albedos[ia]));
+        let seed = KernelRun::seed(self.seed ^ PILOT_SEED, ia * 64 + ic);
+        let chunks = paths.div_ceil(runner::CHUNK_PATHS);
+        let parts: Vec<Pilot> = (0..chunks)
+            .into_par_iter()
+            .map(|k| {
+                let (first, count) = chunk_paths(paths, k);
+                let mut p = Pilot::new(nd);
+                for path in first..first + count {
+                    let mut rng = PathRng::new(seed, path);
+                    p.work += 1.0;
+                    let Some(start) = launch(&Source::Pencil, self.eta, &mut rng) else {
+                        continue;
+                    };
+                    let (fate, n, log_ratio) = walk_transformed(
+                        &medium,
+                        &albedo,
+                        self.max_events,
+                        f,
+                        start,
+                        &mut rng,
+                        |_, _| {},
+                    );
+                    p.work += n as f64;
+                    let Fate::Exit { x, y } = fate else { continue };
+                    let Some(id) = self.distance_bin(x.hypot(y)) else {
+                        continue;
+                    };
+                    if n < self.min_order {
+                        continue;
+                    }
+                    let w = log_ratio.exp();
+                    p.count[id] += 1;
+                    p.sum[id] += w;
+                    p.sum_sq[id] += w * w;
+                    p.weights[id].push(w);
+                }
+                p
+            })
+            .collect();
+        let mut total = Pilot::new(nd);
+        for p in parts {
+            total.work += p.work;
+            for id in 0..nd {
+                total.count[id] += p.count[id];
+                total.sum[id] += p.sum[id];
+                total.sum_sq[id] += p.sum_sq[id];
+                total.weights[id].extend_from_slice(&p.weights[id]);
+            }
+        }
+        total
+    }
+
     /// Runs the whole simulation or one shard of it.
     pub fn run(&self, shard: Option<Shard>, opts: &RunOptions) -> Result<(KernelTally, f64)> {
+        self.run_chunks(shard_range(self.chunks(), shard), opts)
+    }
+
+    /// Runs chunks `range.0..range.1` (e.g. the runs a [`Self::top_up`]
+    /// added; their tally merges with the rest's exactly).
+    pub fn run_chunks(&self, range: (u64, u64), opts: &RunOptions) -> Result<(KernelTally, f64)> {
         self.validate()?;
-        let key = serde_json::json!({ "kernels": self, "shard": shard });
+        let key = serde_json::json!({ "kernels": self, "chunks": range });
         let out = runner::run(
             &key,
-            chunk_range(self.paths, shard),
+            range,
             KernelTally::new(self),
             |c| self.simulate_chunk(c),
             opts,
@@ -558,6 +1149,8 @@ pub struct NormalizedHistogram {
     pub overflow_sigma: f64,
     pub overflow_count_sigma: f64,
     pub paths: u64,
+    /// Kish's effective number of contributing paths ([`CellTally::effective_paths`]).
+    pub effective_paths: f64,
     /// Mean vertices of this class per contributing path (1 for first/last).
     pub mean_vertices: f64,
     /// Mean of u and of v² over the vertices.
@@ -570,9 +1163,14 @@ pub struct NormalizedHistogram {
 pub struct CellSummary {
     pub albedo: f64,
     pub d: f64,
-    /// Contributing paths, and their fraction of the launched paths.
+    /// Contributing paths, and their fraction of the paths launched for the
+    /// cell (all, or its run's).
     pub paths: u64,
     pub fraction: f64,
+    /// Effective contributing paths ([`CellTally::effective_paths`]) and the
+    /// flight sampling of the walk that fed the cell.
+    pub effective_paths: f64,
+    pub flights: Flights,
     /// Mean scattering vertices per contributing path.
     pub mean_vertices: f64,
     /// Mean u and v² of all / first / last vertices.
@@ -608,13 +1206,15 @@ impl KernelDoc {
         for (ia, a) in config.albedos.iter().enumerate() {
             for (id, d) in config.distances.iter().enumerate() {
                 let c = &tally.cells[ia][id];
-                let n = c.paths.max(1) as f64;
+                let n = (c.weight as f64).max(1.0);
                 let means = c.classes.each_ref().map(ClassTally::means);
                 summary.push(CellSummary {
                     albedo: *a,
                     d: *d,
                     paths: c.paths,
-                    fraction: c.paths as f64 / tally.paths.max(1) as f64,
+                    fraction: c.paths as f64 / config.launched_for(ia, id).max(1) as f64,
+                    effective_paths: c.effective_paths(),
+                    flights: config.run_of(ia, id).map_or(Flights::ANALOG, |r| r.flights),
                     mean_vertices: c.events as f64 / n,
                     mean_u: means.map(|m| m.0),
                     mean_v2: means.map(|m| m.1),
@@ -690,6 +1290,21 @@ impl crate::doc::Document for KernelDoc {
     }
 }
 
+/// A flight sampling must keep σ' > 0 in every direction.
+fn check_flights(f: &Flights, name: &'static str) -> Result<()> {
+    if !(f.stretch > 0.0 && f.stretch <= 8.0 && (0.0..1.0).contains(&f.bias) && f.forced <= 64) {
+        return Err(Error::param(
+            name,
+            format!(
+                "stretch {}, bias {}, forced {}",
+                f.stretch, f.bias, f.forced
+            ),
+            "stretch in (0, 8], bias in [0, 1), forced <= 64",
+        ));
+    }
+    Ok(())
+}
+
 /// `0.1,0.25,0.5`: a list as the command line takes it.
 fn list(v: &[f64]) -> String {
     v.iter()
@@ -716,7 +1331,7 @@ pub fn merge(docs: &[(PathBuf, KernelDoc)], provenance: Provenance) -> Result<Ke
         wall_s += d.wall_s;
     }
     let joined = runner::join_chunks(docs.iter().map(|(p, d)| (p.as_path(), &d.chunks[..])))?;
-    let complete = joined == [chunk_range(first.config.paths, None)];
+    let complete = joined == [(0, first.config.chunks())];
     let shard = if complete { None } else { first.shard };
     Ok(KernelDoc::new(
         first.config.clone(),
@@ -738,10 +1353,10 @@ mod sparse {
     #[derive(Serialize, Deserialize)]
     struct Sparse {
         len: usize,
-        nz: Vec<(usize, u64)>,
+        nz: Vec<(usize, u128)>,
     }
 
-    pub fn serialize<S: Serializer>(v: &[u64], s: S) -> Result<S::Ok, S::Error> {
+    pub fn serialize<S: Serializer>(v: &[u128], s: S) -> Result<S::Ok, S::Error> {
         Sparse {
             len: v.len(),
             nz: v
@@ -754,7 +1369,7 @@ mod sparse {
         .serialize(s)
     }
 
-    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<u64>, D::Error> {
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<u128>, D::Error> {
         let sp = Sparse::deserialize(d)?;
         if sp.len > 1 << 28 {
             return Err(D::Error::custom(format!("len {} too large", sp.len)));
@@ -832,7 +1447,7 @@ impl<A: super::walk::AlbedoField + Sync, D: super::walk::DensityField + Sync>
             {
                 continue;
             }
-            cell.add_path(&self.grid, [x, y], self.lambda, &vertices, &mut bins);
+            cell.add_path(&self.grid, [x, y], self.lambda, &vertices, 1, &mut bins);
         }
         cell
     }
@@ -848,9 +1463,58 @@ mod tests {
         let mut c = CellTally::new(&grid);
         let mut scratch = Vec::new();
         for v in paths {
-            c.add_path(&grid, [1.0, 0.0], 1.0, v, &mut scratch);
+            c.add_path(&grid, [1.0, 0.0], 1.0, v, 1, &mut scratch);
         }
         (grid, c)
+    }
+
+    #[test]
+    fn a_common_weight_changes_nothing() {
+        // The same paths with weight 2³⁰ each: identical masses, errors and
+        // moments (every sum scales by w or w², and the estimators are ratios).
+        let paths: Vec<Vec<[f64; 2]>> = (0..50)
+            .map(|k| {
+                (0..1 + k % 7)
+                    .map(|j| [0.1 * j as f64, 0.05 * k as f64])
+                    .collect()
+            })
+            .collect();
+        let (grid, a) = cell(&paths);
+        let mut b = CellTally::new(&grid);
+        let mut scratch = Vec::new();
+        for v in &paths {
+            b.add_path(&grid, [1.0, 0.0], 1.0, v, 1 << 30, &mut scratch);
+        }
+        assert_eq!(b.effective_paths(), 50.0);
+        for class in [VertexClass::All, VertexClass::First, VertexClass::Last] {
+            let (ha, hb) = (
+                a.normalized(&grid, class, 0.5, 1.0, 1.0),
+                b.normalized(&grid, class, 0.5, 1.0, 1.0),
+            );
+            for k in 0..ha.mass.len() {
+                assert!((ha.mass[k] - hb.mass[k]).abs() < 1e-12);
+                assert!((ha.sigma[k] - hb.sigma[k]).abs() < 1e-12);
+                assert!((ha.count_sigma[k] - hb.count_sigma[k]).abs() < 1e-12);
+            }
+            assert!(
+                (ha.mean_u - hb.mean_u).abs() < 1e-12 && (ha.mean_v2 - hb.mean_v2).abs() < 1e-12
+            );
+        }
+    }
+
+    #[test]
+    fn unequal_weights_count_as_fewer_paths() {
+        // Two paths of weights 1 and 3: Kish's n = 16/10, and the first
+        // vertex's mass is the weighted share 3/4 in the heavier path's bin.
+        let grid = PairGrid::default();
+        let mut c = CellTally::new(&grid);
+        let mut scratch = Vec::new();
+        c.add_path(&grid, [1.0, 0.0], 1.0, &[[0.5, 0.0]], 1, &mut scratch);
+        c.add_path(&grid, [1.0, 0.0], 1.0, &[[0.5, 1.5]], 3, &mut scratch);
+        assert!((c.effective_paths() - 1.6).abs() < 1e-12);
+        let h = c.normalized(&grid, VertexClass::First, 0.5, 1.0, 1.0);
+        assert!((h.mass[grid.index(0.0, 1.5)] - 0.75).abs() < 1e-12);
+        assert!((h.mass[grid.index(0.0, 0.0)] - 0.25).abs() < 1e-12);
     }
 
     #[test]

@@ -61,7 +61,12 @@ impl Shard {
 
 /// The chunk range `[lo, hi)` of a simulation of `paths` paths, or of one shard of it.
 pub fn chunk_range(paths: u64, shard: Option<Shard>) -> (u64, u64) {
-    let chunks = paths.div_ceil(CHUNK_PATHS);
+    shard_range(paths.div_ceil(CHUNK_PATHS), shard)
+}
+
+/// The chunk range `[lo, hi)` of a simulation of `chunks` chunks, or of one
+/// shard of it.
+pub fn shard_range(chunks: u64, shard: Option<Shard>) -> (u64, u64) {
     match shard {
         None => (0, chunks),
         Some(Shard { index, count }) => {

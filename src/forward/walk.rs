@@ -257,10 +257,11 @@ pub fn walk(medium: &Medium, max_events: u32, start: Launched, rng: &mut PathRng
 
 /// The walk with the albedo read from `albedo` at every collision (the
 /// medium's own `alpha` is ignored) and `visit` called with the position of
-/// every scattering vertex and the direction the path arrived in, in order. Density stays homogeneous (σ_t of
-/// `medium`). The stream is consumed exactly as by [`walk`]: with a uniform
-/// field both give the same path. The azimuth φ = 2π(b + ½)/t uses the local
-/// threshold t, below which b is uniform, so it stays exact.
+/// every scattering vertex and the direction the path arrived in, in order.
+/// Density stays homogeneous (σ_t of `medium`). The stream is consumed
+/// exactly as by [`walk`]: with a uniform field both give the same path. The
+/// azimuth φ = 2π(b + ½)/t uses the local threshold t, below which b is
+/// uniform, so it stays exact.
 #[inline]
 pub fn walk_general<A: AlbedoField>(
     medium: &Medium,
@@ -268,29 +269,123 @@ pub fn walk_general<A: AlbedoField>(
     max_events: u32,
     start: Launched,
     rng: &mut PathRng,
-    mut visit: impl FnMut(Vec3, Vec3),
+    visit: impl FnMut(Vec3, Vec3),
 ) -> (Fate, u32) {
+    let (fate, n, _) = walk_transformed(
+        medium,
+        albedo,
+        max_events,
+        Flights::ANALOG,
+        start,
+        rng,
+        visit,
+    );
+    (fate, n)
+}
+
+/// How [`walk_transformed`] draws free flights: at rate
+/// σ' = σ_t·stretch·(1 − bias·μ), with μ the cosine between the flight's
+/// direction and the horizontal direction away from the entry axis (on the
+/// axis, its own horizontal direction: μ = sin θ). `stretch` < 1 lengthens every flight; `bias` > 0 lengthens the
+/// flights that lead away from x_i and shortens those that lead back (the
+/// exponential transform), so paths reach far exit points without more
+/// scatterings. The first `forced` collisions always scatter (survival
+/// biasing, ratio α each), so that at low albedo paths live long enough to
+/// be multiple scattering.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Flights {
+    pub stretch: f64,
+    pub bias: f64,
+    #[serde(default)]
+    pub forced: u32,
+}
+
+impl Flights {
+    /// The analog walk's flights.
+    pub const ANALOG: Flights = Flights {
+        stretch: 1.0,
+        bias: 0.0,
+        forced: 0,
+    };
+}
+
+/// The walk of [`walk_general`] with its free flights drawn as `flights`
+/// says, absorption and scattering analog except at forced collisions.
+/// Returns the fate, the number of scatterings and ln r, with r the path's
+/// probability under the analog walk over its probability under this one,
+///
+/// ln r = Σ_collisions [ln(σ_t/σ') − (σ_t − σ')s] − Σ_walls (σ_t − σ')s + Σ_forced ln α.
+///
+/// Weighting each path by r makes any tally unbiased for the analog one
+/// (Spanier & Gelbard, *Monte Carlo Principles and Neutron Transport
+/// Problems*, 1969, §3.5, the exponential transformation). With
+/// [`Flights::ANALOG`] the draws and positions are those of [`walk_general`]
+/// exactly and ln r = 0.
+#[inline]
+#[allow(clippy::too_many_arguments)]
+pub fn walk_transformed<A: AlbedoField>(
+    medium: &Medium,
+    albedo: &A,
+    max_events: u32,
+    flights: Flights,
+    start: Launched,
+    rng: &mut PathRng,
+    mut visit: impl FnMut(Vec3, Vec3),
+) -> (Fate, u32, f64) {
     let sigma_t = medium.sigma_t();
+    let analog = flights == Flights::ANALOG;
     let inv_eta = 1.0 / medium.eta;
     let bottom = medium.thickness.map(|l| -l);
     let [mut x, mut y, mut z] = start.position;
     let mut w = start.direction;
     let mut n = 0u32;
+    let mut log_ratio = 0.0;
     loop {
         let (a, b, c) = (rng.next_u32(), rng.next_u32(), rng.next_u32());
         // ---- free flight ----------------------------------------------------
-        let s = -unit_open0_f64(a).ln() / sigma_t;
+        let sigma = if analog {
+            sigma_t
+        } else {
+            let r = x.hypot(y);
+            let mu = if r > 1e-12 {
+                (w[0] * x + w[1] * y) / r
+            } else {
+                w[0].hypot(w[1])
+            };
+            sigma_t * flights.stretch * (1.0 - flights.bias * mu)
+        };
+        let s = -unit_open0_f64(a).ln() / sigma;
         // ---- boundary: surface (w_z > 0) or slab bottom (w_z < 0) ------------
-        match wall(&mut x, &mut y, &mut z, &mut w, s, bottom, b, inv_eta) {
-            Wall::Missed => {}
-            Wall::Reflected => continue,
-            Wall::Left(fate) => return (fate, n),
+        let to_wall = wall_distance(z, &w, bottom);
+        if s >= to_wall {
+            if !analog {
+                log_ratio -= (sigma_t - sigma) * to_wall;
+            }
+            match hit_wall(&mut x, &mut y, &mut z, &mut w, to_wall, bottom, b, inv_eta) {
+                Wall::Missed | Wall::Reflected => continue,
+                Wall::Left(fate) => return (fate, n, log_ratio),
+            }
+        }
+        if !analog {
+            log_ratio += (sigma_t / sigma).ln() - (sigma_t - sigma) * s;
         }
         x += w[0] * s;
         y += w[1] * s;
         z += w[2] * s;
         // ---- collision: absorb or scatter -----------------------------------
         let p = [x, y, z];
+        let b = if n < flights.forced {
+            // Forced to scatter: b uniform below the local threshold t (so
+            // the azimuth stays exact), ratio α = t/2³².
+            let t = albedo.threshold(p[0], p[1]);
+            if t == 0 {
+                return (Fate::Absorbed, n, log_ratio);
+            }
+            log_ratio += (t as f64 / 4294967296.0).ln();
+            ((b as u64 * t) >> 32) as u32
+        } else {
+            b
+        };
         if let Some(end) = collide(
             albedo,
             medium.g,
@@ -302,7 +397,7 @@ pub fn walk_general<A: AlbedoField>(
             max_events,
             &mut visit,
         ) {
-            return (end, n);
+            return (end, n, log_ratio);
         }
     }
 }

@@ -29,7 +29,7 @@
 
 use crate::error::{Error, Result};
 use crate::forward::kernel::{KernelConfig, KernelDoc};
-use crate::forward::runner::{RunOptions, chunk_range};
+use crate::forward::runner::RunOptions;
 use crate::metamodel::meta::MetaModelFile;
 use crate::provenance::Provenance;
 use serde::{Deserialize, Serialize};
@@ -131,6 +131,7 @@ pub fn ensure(
     let config = KernelConfig {
         albedos: albedos.clone(),
         paths: extension_paths(missing, trained),
+        runs: Vec::new(),
         ..training.clone()
     };
     config.validate()?;
@@ -169,7 +170,7 @@ pub fn ensure(
             ..Default::default()
         };
         let (tally, wall_s) = config.run(None, &opts)?;
-        let chunks = vec![chunk_range(config.paths, None)];
+        let chunks = vec![(0, config.chunks())];
         let doc = KernelDoc::new(config, None, chunks, tally, wall_s, Provenance::current());
         let degree = (meta.all.deg_x, meta.all.deg_y.min(EXTENSION_ALBEDOS - 2));
         let (file, _) = crate::fit::meta::fit_metamodel(&doc, meta.all.k, degree, progress)?;

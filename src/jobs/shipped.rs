@@ -99,6 +99,7 @@ pub fn training_config() -> KernelConfig {
             nv: 16,
             extent: 4.0,
         },
+        runs: Vec::new(),
     }
 }
 
