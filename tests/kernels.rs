@@ -41,9 +41,12 @@ fn doc(c: &KernelConfig, shard: Option<Shard>) -> KernelDoc {
     )
 }
 
-#[test]
-fn one_vs_many_threads_and_shards_are_bitwise_identical() {
-    let c = config(&[0.7, 0.95], &[0.5, 2.0], 1.0, 3 * 16384 + 123, 9);
+/// Runs `c` on one thread, on all, and as `n` merged shards; asserts that
+/// all three tallies are bitwise equal and returns the tally and the shards.
+fn same_for_threads_and_shards(
+    c: &KernelConfig,
+    n: u64,
+) -> (KernelTally, Vec<(std::path::PathBuf, KernelDoc)>) {
     let one = rayon::ThreadPoolBuilder::new()
         .num_threads(1)
         .build()
@@ -51,15 +54,22 @@ fn one_vs_many_threads_and_shards_are_bitwise_identical() {
         .install(|| c.run(None, &RunOptions::default()).unwrap().0);
     let many = c.run(None, &RunOptions::default()).unwrap().0;
     assert_eq!(one, many);
-    let shards: Vec<_> = (0..3)
+    let shards: Vec<_> = (0..n)
         .map(|k| {
-            let s = Shard { index: k, count: 3 };
-            (std::path::PathBuf::from(format!("s{k}")), doc(&c, Some(s)))
+            let s = Shard { index: k, count: n };
+            (std::path::PathBuf::from(format!("s{k}")), doc(c, Some(s)))
         })
         .collect();
     let merged = merge(&shards, Provenance::current()).unwrap();
     assert_eq!(merged.tally, many);
     assert_eq!(merged.shard, None);
+    (many, shards)
+}
+
+#[test]
+fn one_vs_many_threads_and_shards_are_bitwise_identical() {
+    let c = config(&[0.7, 0.95], &[0.5, 2.0], 1.0, 3 * 16384 + 123, 9);
+    let (many, shards) = same_for_threads_and_shards(&c, 3);
     // The same shard twice is refused.
     assert!(
         merge(
@@ -108,22 +118,7 @@ fn planned_runs_are_bitwise_identical_for_threads_and_shards() {
     );
     c.validate().unwrap();
     assert_eq!(c.chunks(), 6);
-    let one = rayon::ThreadPoolBuilder::new()
-        .num_threads(1)
-        .build()
-        .unwrap()
-        .install(|| c.run(None, &RunOptions::default()).unwrap().0);
-    let many = c.run(None, &RunOptions::default()).unwrap().0;
-    assert_eq!(one, many);
-    let shards: Vec<_> = (0..4)
-        .map(|k| {
-            let s = Shard { index: k, count: 4 };
-            (std::path::PathBuf::from(format!("s{k}")), doc(&c, Some(s)))
-        })
-        .collect();
-    let merged = merge(&shards, Provenance::current()).unwrap();
-    assert_eq!(merged.tally, many);
-    assert_eq!(merged.shard, None);
+    let (many, _) = same_for_threads_and_shards(&c, 4);
     // Every run reached its cells, with unequal weights.
     for row in &many.cells {
         for cell in row {
