@@ -478,6 +478,10 @@ struct KernelArgs {
     /// stretch and a path count (then `--paths` is the most paths of one run).
     #[arg(long)]
     min_paths: Option<f64>,
+    /// With --min-paths: at most this many top-up rounds after the plan,
+    /// each sized from the tally so far for the cells still short.
+    #[arg(long, default_value_t = 3)]
+    top_ups: usize,
     #[command(flatten)]
     run: RunArgs,
 }
@@ -571,7 +575,7 @@ fn simulate_kernels(a: KernelArgs) -> Result<()> {
                 let (tally, wall_s) = planned.run(shard, &opts)?;
                 (planned, tally, wall_s)
             } else {
-                run_with_top_ups(planned, target, a.run.paths, &a.run.out, &opts)?
+                run_with_top_ups(planned, target, a.run.paths, a.top_ups, &a.run.out, &opts)?
             }
         }
     };
@@ -583,7 +587,7 @@ fn simulate_kernels(a: KernelArgs) -> Result<()> {
     Ok(())
 }
 
-/// Runs a planned simulation, then up to [`TOP_UPS`] rounds of
+/// Runs a planned simulation, then up to `top_ups` rounds of
 /// [`KernelConfig::top_up`] where cells fell short. Each finished round is
 /// kept in `OUT.rounds` (configuration and tally), so that `--resume` after
 /// a kill loses at most the running round's last checkpoint interval.
@@ -591,6 +595,7 @@ fn run_with_top_ups(
     planned: KernelConfig,
     target: f64,
     max_paths: u64,
+    top_ups: usize,
     out: &std::path::Path,
     opts: &RunOptions,
 ) -> Result<(KernelConfig, kernel::KernelTally, f64)> {
@@ -602,7 +607,6 @@ fn run_with_top_ups(
         wall_s: f64,
         round: usize,
     }
-    const TOP_UPS: usize = 3;
     let rounds_path = {
         let mut s = out.as_os_str().to_owned();
         s.push(".rounds");
@@ -627,7 +631,7 @@ fn run_with_top_ups(
             }
         }
     };
-    while state.round < TOP_UPS {
+    while state.round < top_ups {
         // The finished round is kept; its chunk checkpoint is spent.
         svkernel::jobs::store::write_json_compact_atomic(&rounds_path, &state)?;
         remove_checkpoint(out)?;

@@ -19,6 +19,8 @@ coefficient vector C (index j*n_coeffs + a):
   S_k(j) = 2[Phi(s_{j+1}/sigma_k) - Phi(s_j/sigma_k)];
   overflow o = sum_k w_k q_k, q_k = (1 - T_tot) + T_tot (1 - S_tot);
   residual (m - y)/scale (floored standard errors, exported);
+  if the cell has whole-plane moments (t, s), two more residuals
+  W (sum_k w_k mu_k - t)/tol_t and W ln(sqrt(sum_k w_k sigma_k^2)/s)/tol_s;
 * then the ridge residuals w*C_{ja} for every j and a >= 1 (j-major).
 
 Checks against the Rust export:
@@ -81,7 +83,18 @@ def gmm_residuals(eta_free, mu, log_sig, cell):
     q = t_out + t_tot * s_out
     o = jnp.sum(w * q)
     model = jnp.concatenate([m, o[None]])
-    return (model - cell["y"]) / cell["scale"]
+    r = (model - cell["y"]) / cell["scale"]
+    mom = cell.get("moments")
+    if mom is None:
+        return r
+    # Whole-plane moments: W (sum w mu - t)/tol_t, W ln(sqrt(sum w sig^2)/s)/tol_s.
+    (t_data, s_data), (tol_t, tol_s), wgt = mom["plane"], mom["tol"], mom["weight"]
+    et = jnp.sum(w * mu)
+    rs = jnp.sqrt(jnp.maximum(jnp.sum(w * sig * sig), 1e-300))
+    extra = jnp.stack(
+        [wgt * (et - t_data) / tol_t, wgt * jnp.log(rs / max(s_data, 1e-6)) / tol_s]
+    )
+    return jnp.concatenate([r, extra])
 
 
 def load(path):
@@ -101,6 +114,7 @@ def load(path):
                 "se": jnp.asarray(c["s_edges"], dtype=jnp.float64),
                 "y": jnp.asarray(list(c["mass"]) + [c["overflow"]], dtype=jnp.float64),
                 "scale": jnp.asarray(c["scale"], dtype=jnp.float64),
+                "moments": c.get("moments"),
             }
         )
         nt, ns = len(c["t_edges"]) - 1, len(c["s_edges"]) - 1

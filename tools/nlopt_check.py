@@ -151,7 +151,16 @@ def gmm_residuals(theta, h):
     s_out = erfc(se[-1] / sig * _INV_SQRT2) + erf(se[0] / sig * _INV_SQRT2)
     o = float(w @ (t_out + t_tot * s_out))
     model = np.concatenate([m, [o]])
-    return (model - h["y"]) / h["scale"]
+    r = (model - h["y"]) / h["scale"]
+    mom = h.get("moments")
+    if mom is None:
+        return r
+    # Whole-plane moments, as in src/fit/gmm.rs ("Moments").
+    (t_data, s_data), (tol_t, tol_s), wgt = mom["plane"], mom["tol"], mom["weight"]
+    et = float(w @ mu)
+    rs = math.sqrt(max(float(w @ (sig * sig)), 1e-300))
+    extra = [wgt * (et - t_data) / tol_t, wgt * math.log(rs / max(s_data, 1e-6)) / tol_s]
+    return np.concatenate([r, extra])
 
 
 def gmm_chi2(theta, h):
@@ -171,6 +180,7 @@ def gmm_main(path):
         "se": np.asarray(c["s_edges"], dtype=float),
         "y": np.asarray(list(c["mass"]) + [c["overflow"]], dtype=float),
         "scale": np.asarray(c["scale"], dtype=float),
+        "moments": c.get("moments"),
     }
     assert h["y"].size == h["scale"].size == (h["te"].size - 1) * (h["se"].size - 1) + 1
     theta0 = np.asarray(fit["theta"], dtype=float)

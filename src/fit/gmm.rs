@@ -39,6 +39,18 @@
 //! 1e-6 if every σ is 0 — then all weights are equal and the minimiser is the
 //! unweighted least-squares one whatever the floor.
 //!
+//! # Moments
+//! The bins see only the window, and a low-weight component far wider
+//! than the window costs nothing there but the overflow; yet the renderer
+//! reads the kernel over the whole plane. If the data carry the vertices'
+//! whole-plane mean t̄ and rms s̄ ([`KernelHistogram::plane`], from the
+//! tally's running sums), two more residuals tie the model's moments to
+//! them: W·(Σ w_k μ_k − t̄)/τ_t and W·ln(√(Σ w_k σ_k²)/s̄)/τ_s, with the
+//! tolerances of [`moment_tolerances`] (5 % of d in mean t, 10 % in rms s,
+//! the meta-model's targets) and the target's weight W
+//! ([`PlaneTarget::weight`]): a miss by the tolerance costs W² in χ². The width's residual is logarithmic, so it is
+//! gentle near the target and grows without bound for a runaway component.
+//!
 //! # Derivatives
 //! With z = (x − μ)/σ at a bin edge x, ∂Φ(z)/∂μ = −φ(z)/σ and
 //! ∂Φ(z)/∂ln σ = −zφ(z) ([`gauss_interval_grad`]); so
@@ -72,6 +84,10 @@ use std::f64::consts::FRAC_1_SQRT_2;
 /// lost patience counts as converged (module docs, "Convergence").
 pub const STALLED_CHI2: f64 = 1e-3;
 
+/// Weight W of the whole-plane moment residuals (module docs, "Moments"):
+/// a miss by the tolerance costs W² in χ².
+pub const MOMENT_WEIGHT: f64 = 1.0;
+
 /// The largest number of components [`fit_gmm`] accepts.
 pub const MAX_COMPONENTS: usize = 5;
 
@@ -98,6 +114,20 @@ pub struct KernelHistogram {
     pub overflow_sigma: f64,
     /// Contributing paths behind it (for a variance floor).
     pub paths: u64,
+    /// Where the vertices lie over the whole plane, window or not, if known:
+    /// two more residuals ([`GmmFit`]).
+    pub plane: Option<PlaneTarget>,
+}
+
+/// The whole-plane moments a fit should reach (module docs, "Moments").
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PlaneTarget {
+    /// Mean t of the vertices (MFP).
+    pub mean_t: f64,
+    /// rms s of the vertices (MFP).
+    pub rms_s: f64,
+    /// The residuals' weight W.
+    pub weight: f64,
 }
 
 impl KernelHistogram {
@@ -349,6 +379,43 @@ impl<'a> GmmFit<'a> {
         p
     }
 
+    /// Residuals: one per bin, the overflow, and two whole-plane moments
+    /// if the data have them.
+    pub fn residual_count(&self) -> usize {
+        self.data.nt() * self.data.ns() + 1 + if self.data.plane.is_some() { 2 } else { 0 }
+    }
+
+    /// The moment residuals (module docs, "Moments") and their gradients in
+    /// θ, if the data have whole-plane moments.
+    fn moments(&self, w: &[f64]) -> Option<[(f64, Vec<f64>); 2]> {
+        let PlaneTarget {
+            mean_t: t_data,
+            rms_s: s_data,
+            weight,
+        } = self.data.plane?;
+        let k = self.k;
+        let d = self.data.d;
+        let (tol_t, tol_s) = moment_tolerances(d);
+        let mu: Vec<f64> = (0..k).map(|i| self.mu(i)).collect();
+        let s2: Vec<f64> = (0..k).map(|i| self.sig(i).powi(2)).collect();
+        let et: f64 = (0..k).map(|i| w[i] * mu[i]).sum();
+        let es2: f64 = (0..k).map(|i| w[i] * s2[i]).sum::<f64>().max(1e-300);
+        let rs = es2.sqrt();
+        let (ft, fs) = (weight / tol_t, weight / tol_s);
+        let s_data = s_data.max(1e-6);
+        let mut gt = vec![0.0; 3 * k - 1];
+        let mut gs = vec![0.0; 3 * k - 1];
+        for c in 0..k {
+            if c > 0 {
+                gt[c - 1] = ft * w[c] * (mu[c] - et);
+                gs[c - 1] = fs * w[c] * (s2[c] - es2) / (2.0 * es2);
+            }
+            gt[k - 1 + c] = ft * w[c];
+            gs[2 * k - 1 + c] = fs * w[c] * s2[c] / es2;
+        }
+        Some([(ft * (et - t_data), gt), (fs * (rs / s_data).ln(), gs)])
+    }
+
     /// Model bin masses (row-major like the data), then the overflow.
     fn model(&self, p: &Parts) -> Vec<f64> {
         let (nt, ns) = (self.data.nt(), self.data.ns());
@@ -381,14 +448,18 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for GmmFit<'_> {
 
     fn residuals(&self) -> Option<DVector<f64>> {
         let h = self.data;
-        let m = self.model(&self.parts());
+        let p = self.parts();
+        let m = self.model(&p);
         let n = m.len();
+        let moments = self.moments(&p.w);
         let r = DVector::from_iterator(
-            n,
-            (0..n).map(|b| {
-                let y = if b + 1 < n { h.mass[b] } else { h.overflow };
-                (m[b] - y) / self.scale[b]
-            }),
+            self.residual_count(),
+            (0..n)
+                .map(|b| {
+                    let y = if b + 1 < n { h.mass[b] } else { h.overflow };
+                    (m[b] - y) / self.scale[b]
+                })
+                .chain(moments.into_iter().flatten().map(|(r, _)| r)),
         );
         r.iter().all(|v| v.is_finite()).then_some(r)
     }
@@ -397,7 +468,7 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for GmmFit<'_> {
         let (nt, ns, k) = (self.data.nt(), self.data.ns(), self.k);
         let p = self.parts();
         let m = self.model(&p);
-        let mut jac = DMatrix::zeros(nt * ns + 1, 3 * k - 1);
+        let mut jac = DMatrix::zeros(self.residual_count(), 3 * k - 1);
         let (col_mu, col_ls) = (k - 1, 2 * k - 1);
         for i in 0..nt {
             for j in 0..ns {
@@ -426,6 +497,11 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for GmmFit<'_> {
             jac[(b, col_mu + c)] = w * dq_mu * inv;
             jac[(b, col_ls + c)] = w * dq_ls * inv;
         }
+        for (row, (_, g)) in self.moments(&p.w).into_iter().flatten().enumerate() {
+            for (col, v) in g.into_iter().enumerate() {
+                jac[(b + 1 + row, col)] = v;
+            }
+        }
         jac.iter().all(|v| v.is_finite()).then_some(jac)
     }
 }
@@ -433,8 +509,20 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for GmmFit<'_> {
 impl Blocks for GmmFit<'_> {
     fn blocks(&self) -> Vec<(String, std::ops::Range<usize>)> {
         let n = self.data.nt() * self.data.ns();
-        vec![("bins".into(), 0..n), ("overflow".into(), n..n + 1)]
+        let mut out = vec![("bins".into(), 0..n), ("overflow".into(), n..n + 1)];
+        if self.data.plane.is_some() {
+            out.push(("moments".into(), n + 1..n + 3));
+        }
+        out
     }
+}
+
+/// Tolerances of the whole-plane moments at distance d (module docs,
+/// "Moments"): 0.05·d + 0.01·λ MFP for mean t (λ = d/2 + 1 MFP), and
+/// ln 1.1 for ln rms s (10 %).
+pub fn moment_tolerances(d: f64) -> (f64, f64) {
+    let lambda = 0.5 * d + 1.0;
+    (0.05 * d + 0.01 * lambda, 1.1f64.ln())
 }
 
 /// Robust start for `k` components, without hand tuning.
@@ -598,6 +686,7 @@ pub fn histogram_of(gmm: &Gmm, template: &KernelHistogram) -> KernelHistogram {
         overflow,
         overflow_sigma: 0.0,
         paths: template.paths,
+        plane: None,
     }
 }
 
@@ -640,6 +729,7 @@ mod tests {
             overflow: 0.0,
             overflow_sigma: 0.0,
             paths,
+            plane: None,
         }
     }
 
@@ -743,8 +833,20 @@ mod tests {
             100_000,
             11,
         );
+        let mut with_moments = h.clone();
+        with_moments.plane = Some(PlaneTarget {
+            mean_t: 1.3,
+            rms_s: 0.9,
+            weight: 2.0,
+        });
         let mut rng = PathRng::new(12, 0);
-        for k in [1, 3, 5] {
+        for (k, h) in [
+            (1, &h),
+            (3, &h),
+            (5, &h),
+            (3, &with_moments),
+            (5, &with_moments),
+        ] {
             for _ in 0..4 {
                 let theta = DVector::from_iterator(
                     3 * k - 1,
@@ -759,7 +861,7 @@ mod tests {
                         }
                     }),
                 );
-                let mut p = GmmFit::new(&h, k, theta);
+                let mut p = GmmFit::new(h, k, theta);
                 let err = jacobian_mismatch(&mut p);
                 assert!(err < 1e-6, "K = {k}: relative Jacobian error {err}");
                 let analytic = p.jacobian().unwrap();
@@ -793,6 +895,46 @@ mod tests {
             );
         }
         assert!(l2_error(&histogram_of(&g, &h), &histogram_of(&truth, &h)) < 1e-8);
+    }
+
+    #[test]
+    fn whole_plane_moments_reach_past_the_window() {
+        // A wide, light component mostly off a narrow grid: the bins barely
+        // see it, the moments do.
+        let c = |weight, t, sigma| Component {
+            weight,
+            t,
+            s: 0.0,
+            sigma,
+        };
+        let truth = Gmm {
+            components: vec![c(0.5, 0.2, 0.4), c(0.4, 1.0, 0.6), c(0.1, 0.8, 6.0)],
+        };
+        let moments = crate::fit::meta::PlaneMoments::of(&truth);
+        let mut h = noisy(
+            &histogram_of(&truth, &template(1.0, (-1.0, 2.5, 14), (1.5, 6), 0)),
+            1_000_000,
+            5,
+        );
+        let fit = |h: &KernelHistogram| fit_gmm("moments", h, 3, &FitOptions::default()).unwrap().0;
+        let blind = crate::fit::meta::PlaneMoments::of(&fit(&h));
+        h.plane = Some(PlaneTarget {
+            mean_t: moments.mean_t,
+            rms_s: moments.rms_s,
+            weight: MOMENT_WEIGHT,
+        });
+        let seen = crate::fit::meta::PlaneMoments::of(&fit(&h));
+        let (tol_t, tol_s) = moment_tolerances(h.d);
+        assert!(
+            (seen.mean_t - moments.mean_t).abs() < tol_t
+                && (seen.rms_s / moments.rms_s).ln().abs() < tol_s,
+            "with moments: {seen:?} against {moments:?}"
+        );
+        // Without them the width is a guess from the overflow alone.
+        assert!(
+            (blind.rms_s / moments.rms_s).ln().abs() > (seen.rms_s / moments.rms_s).ln().abs(),
+            "without moments {blind:?}, with {seen:?}, truth {moments:?}"
+        );
     }
 
     #[test]

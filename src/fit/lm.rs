@@ -11,7 +11,7 @@
 //!   [`levenberg_marquardt::differentiate_numerically`] in each module's tests.
 
 use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
-use nalgebra::{DVector, Dyn, Owned};
+use nalgebra::{DMatrix, DVector, Dyn, Owned};
 use serde::{Deserialize, Serialize};
 use std::ops::Range;
 use std::time::Instant;
@@ -118,7 +118,188 @@ where
         .with_xtol(opts.tol)
         .with_gtol(1e-14)
         .with_patience(opts.patience);
-    let (problem, report) = lm.minimize(problem);
+    let (problem, lm_report) = lm.minimize(problem);
+    let success = lm_report.termination.was_successful()
+        // "No improvement possible" at our tight tolerance means the optimum
+        // is resolved to machine precision: a success for our purposes.
+        || matches!(lm_report.termination, levenberg_marquardt::TerminationReason::NoImprovementPossible(_));
+    let rep = report(
+        what,
+        &problem,
+        describe(&lm_report.termination),
+        success,
+        lm_report.number_of_evaluations,
+        start,
+    );
+    accept(what, problem, rep, opts)
+}
+
+/// A compressed least-squares system: (χ², Ĵ, r̂) ([`CompressedJacobian`]).
+pub type Compressed = (f64, DMatrix<f64>, DVector<f64>);
+
+/// Relative step below which [`solve_compressed`] stops (converged).
+pub const STEP_TOL: f64 = 1e-10;
+
+/// A problem that hands [`solve_compressed`] its Jacobian compressed: a
+/// short matrix Ĵ and vector r̂ with ĴᵀĴ = JᵀJ and Ĵᵀr̂ = Jᵀr, so that
+/// ‖J h + r‖² = ‖Ĵ h + r̂‖² + (‖r‖² − ‖r̂‖²) for every step h. Worth it where
+/// the Jacobian is tall and structured: in the joint meta-model fit each
+/// cell's ~10³ residuals depend on 3K − 1 numbers of its own, so a QR of
+/// each cell's small Jacobian compresses it to 3K − 1 rows, while the full
+/// Jacobian has ~10⁵ rows. Unlike the normal equations, the compressed
+/// system keeps the Jacobian's condition number rather than squaring it.
+pub trait CompressedJacobian:
+    LeastSquaresProblem<
+        f64,
+        Dyn,
+        Dyn,
+        ResidualStorage = Owned<f64, Dyn>,
+        ParameterStorage = Owned<f64, Dyn>,
+    >
+{
+    /// (χ² = ‖r‖², Ĵ, r̂) at the current parameters; `None` if not finite.
+    fn compressed(&self) -> Option<Compressed>;
+}
+
+/// Solves `problem` from its current parameters by Levenberg–Marquardt on
+/// its compressed Jacobian ([`CompressedJacobian`]), starting with damping
+/// μ = `initial_damping` (1e-3 is the usual choice). The step h minimises
+/// ‖Ĵh + r̂‖² + μ‖Dh‖², by QR of the stacked [Ĵ; √μ·D], with Marquardt's
+/// scaling D = diag of Ĵ's column norms; the damping μ follows the gain
+/// ratio ϱ = (χ² − χ²(x + h)) / (‖r̂‖² − ‖Ĵh + r̂‖²) as in Madsen, Nielsen &
+/// Tingleff, *Methods for non-linear least squares problems* (2004),
+/// Algorithm 3.16 (μ ← μ·max(⅓, 1 − (2ϱ − 1)³) on success, μ ← μν, ν ← 2ν on
+/// failure). It stops when an accepted step lowers χ² by a relative
+/// `opts.tol` or less and predicted no more (converged, MINPACK's `ftol`
+/// test), when a step is below [`STEP_TOL`] relative to the parameters
+/// (`xtol`), or after `opts.patience`·(n + 1) evaluations. Same report and
+/// errors as [`solve`].
+pub fn solve_compressed<P>(
+    what: &str,
+    mut problem: P,
+    opts: &FitOptions,
+    initial_damping: f64,
+) -> Result<(P, FitReport), FitError>
+where
+    P: CompressedJacobian + Blocks,
+{
+    let start = Instant::now();
+    let mut x = problem.params();
+    let n = x.len();
+    let budget = opts.patience * (n + 1);
+    let mut evaluations = 1;
+    let not_finite = |evaluations| FitError::NotConverged {
+        what: what.to_string(),
+        termination: "stopped: numerical problem (non-finite χ²)".into(),
+        evaluations,
+        chi2_per_dof: f64::INFINITY,
+    };
+    let Some((mut chi2, mut jac, mut res)) = problem.compressed() else {
+        return Err(not_finite(evaluations));
+    };
+    let (mut mu, mut nu): (f64, f64) = (initial_damping, 2.0);
+    let termination = loop {
+        if evaluations >= budget {
+            break (false, "stopped: evaluation budget spent".to_string());
+        }
+        if mu > 1e30 {
+            break (true, "converged (no step lowers χ²)".to_string());
+        }
+        let m = jac.nrows();
+        let norms: Vec<f64> = (0..n).map(|j| jac.column(j).norm()).collect();
+        let nmax = norms.iter().copied().fold(0.0, f64::max).max(1e-300);
+        let mut stacked = DMatrix::zeros(m + n, n);
+        stacked.rows_mut(0, m).copy_from(&jac);
+        for (j, v) in norms.iter().enumerate() {
+            stacked[(m + j, j)] = mu.sqrt() * v.max(1e-12 * nmax);
+        }
+        let mut rhs = DVector::zeros(m + n);
+        rhs.rows_mut(0, m).copy_from(&(-&res));
+        let qr = stacked.qr();
+        let Some(h) = qr.r().solve_upper_triangular(&(qr.q().tr_mul(&rhs))) else {
+            mu *= nu;
+            nu *= 2.0;
+            continue;
+        };
+        if !h.iter().all(|v| v.is_finite()) {
+            mu *= nu;
+            nu *= 2.0;
+            continue;
+        }
+        if h.norm() <= STEP_TOL * (x.norm() + STEP_TOL) {
+            break (
+                true,
+                "converged (relative step below tolerance)".to_string(),
+            );
+        }
+        let predicted = res.norm_squared() - (&jac * &h + &res).norm_squared();
+        let trial = &x + &h;
+        problem.set_params(&trial);
+        evaluations += 1;
+        let new = problem.residuals().map(|r| r.norm_squared());
+        match new {
+            Some(c) if c.is_finite() && c < chi2 && predicted > 0.0 => {
+                let rho = (chi2 - c) / predicted;
+                let gain = (chi2 - c) / chi2;
+                let predicted_gain = predicted / chi2;
+                x = trial;
+                let Some(next) = problem.compressed() else {
+                    return Err(not_finite(evaluations));
+                };
+                (chi2, jac, res) = next;
+                mu *= (1.0f64 / 3.0).max(1.0 - (2.0 * rho - 1.0).powi(3));
+                nu = 2.0;
+                if gain <= opts.tol && predicted_gain <= opts.tol {
+                    break (
+                        true,
+                        "converged (relative χ² change below tolerance)".to_string(),
+                    );
+                }
+            }
+            _ => {
+                problem.set_params(&x);
+                mu *= nu;
+                nu *= 2.0;
+            }
+        }
+    };
+    problem.set_params(&x);
+    let (success, termination) = termination;
+    let rep = report(what, &problem, termination, success, evaluations, start);
+    accept(what, problem, rep, opts)
+}
+
+/// The solved problem and its report, or the error if the fit did not
+/// converge (and `opts` does not allow that) or χ² is not finite.
+fn accept<P>(
+    what: &str,
+    problem: P,
+    rep: FitReport,
+    opts: &FitOptions,
+) -> Result<(P, FitReport), FitError> {
+    if !rep.success && !opts.allow_nonconvergence || !rep.chi2.is_finite() {
+        return Err(FitError::NotConverged {
+            what: what.to_string(),
+            termination: rep.termination,
+            evaluations: rep.evaluations,
+            chi2_per_dof: rep.chi2_per_dof,
+        });
+    }
+    Ok((problem, rep))
+}
+
+/// The report of a solved problem at its current parameters.
+fn report<P>(
+    what: &str,
+    problem: &P,
+    termination: String,
+    success: bool,
+    evaluations: usize,
+    start: Instant,
+) -> FitReport
+where
+    P: LeastSquaresProblem<f64, Dyn, Dyn, ResidualStorage = Owned<f64, Dyn>> + Blocks,
+{
     let r = problem.residuals();
     let chi2 = r.as_ref().map_or(f64::INFINITY, |r| r.norm_squared());
     let n_params = problem.params().len();
@@ -135,30 +316,17 @@ where
             (name, (s / n).sqrt())
         })
         .collect();
-    let success = report.termination.was_successful()
-        // "No improvement possible" at our tight tolerance means the optimum
-        // is resolved to machine precision: a success for our purposes.
-        || matches!(report.termination, levenberg_marquardt::TerminationReason::NoImprovementPossible(_));
-    let rep = FitReport {
+    FitReport {
         what: what.to_string(),
-        termination: describe(&report.termination),
+        termination,
         success,
-        evaluations: report.number_of_evaluations,
+        evaluations,
         chi2,
         dof,
         chi2_per_dof: chi2 / dof as f64,
         block_rms,
         wall_s: start.elapsed().as_secs_f64(),
-    };
-    if !rep.success && !opts.allow_nonconvergence || !chi2.is_finite() {
-        return Err(FitError::NotConverged {
-            what: what.to_string(),
-            termination: rep.termination,
-            evaluations: rep.evaluations,
-            chi2_per_dof: rep.chi2_per_dof,
-        });
     }
-    Ok((problem, rep))
 }
 
 /// Largest relative difference between a problem's analytic Jacobian and a
