@@ -857,3 +857,51 @@ fn commands_work_from_an_empty_folder() {
     assert!(d.join("r/main/learned.exr").exists());
     assert!(!d.join("data").exists() && !d.join("out").exists());
 }
+
+/// A planned kernel simulation from the command line: the plan goes to
+/// stderr, the document records its runs, `--top-ups 0` runs the plan
+/// alone, and no round file is left behind.
+#[test]
+fn planned_kernel_simulation_with_bounded_top_ups() {
+    let d = tmpdir("planned");
+    let out = d.join("k.json");
+    let o = bin()
+        .args([
+            "simulate",
+            "kernels",
+            "--albedos",
+            "0.5",
+            "--distances",
+            "1,4",
+            "--nu",
+            "8",
+            "--nv",
+            "4",
+            "--min-paths",
+            "1e9",
+            "--top-ups",
+            "0",
+            "--paths",
+            "1e6",
+            "--out",
+        ])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("plan:"), "{err}");
+    // The target is out of reach, so a top-up would be due: none ran.
+    assert!(!err.contains("top-up"), "{err}");
+    let doc = json(&out);
+    let runs = doc["config"]["runs"].as_array().unwrap();
+    assert!(!runs.is_empty());
+    assert_eq!(
+        doc["config"]["paths"].as_u64().unwrap(),
+        runs.iter()
+            .map(|r| r["paths"].as_u64().unwrap())
+            .sum::<u64>()
+    );
+    assert!(!d.join("k.json.rounds").exists() && !d.join("k.json.ckpt").exists());
+    std::fs::remove_dir_all(&d).unwrap();
+}
