@@ -46,7 +46,7 @@
 use super::medium::Medium;
 use super::rng::{PathRng, splitmix64, threshold_u32, unit_f64};
 use super::runner::{self, RunOptions, Shard, Tally, chunk_paths, shard_range};
-use super::walk::{Fate, Flights, UniformAlbedo, launch, walk_transformed};
+use super::walk::{Fate, Flights, Launched, UniformAlbedo, launch, walk_transformed};
 use crate::error::{Error, Result};
 use crate::forward::medium::Source;
 use crate::provenance::Provenance;
@@ -806,32 +806,14 @@ impl KernelConfig {
             };
             for (ia, (medium, albedo)) in media.iter().enumerate() {
                 let mut rng = base;
-                vertices.clear();
-                let (fate, n, _) = walk_transformed(
-                    medium,
-                    albedo,
-                    self.max_events,
-                    Flights::ANALOG,
-                    start,
-                    &mut rng,
-                    |v, _| vertices.push([v[0], v[1]]),
-                );
-                let Fate::Exit { x, y } = fate else { continue };
-                if n < self.min_order {
-                    continue;
-                }
-                let d = x.hypot(y);
-                let Some(id) = self.distance_bin(d) else {
+                let walk = (medium, albedo, Flights::ANALOG, start);
+                let Some((exit, id, _)) =
+                    self.counted_walk(walk, &mut rng, &mut vertices, |_| true)
+                else {
                     continue;
                 };
-                tally.cells[ia][id].add_path(
-                    &self.grid,
-                    [x, y],
-                    PairGrid::scale(d, mfp),
-                    &vertices,
-                    1,
-                    &mut bins,
-                );
+                let scale = PairGrid::scale(exit[0].hypot(exit[1]), mfp);
+                tally.cells[ia][id].add_path(&self.grid, exit, scale, &vertices, 1, &mut bins);
             }
         }
         tally
@@ -868,24 +850,12 @@ impl KernelConfig {
             let Some(start) = launch(&Source::Pencil, self.eta, &mut rng) else {
                 continue;
             };
-            vertices.clear();
-            let (fate, n, log_ratio) = walk_transformed(
-                &medium,
-                &albedo,
-                self.max_events,
-                run.flights,
-                start,
-                &mut rng,
-                |v, _| vertices.push([v[0], v[1]]),
-            );
-            let Fate::Exit { x, y } = fate else { continue };
-            let d = x.hypot(y);
-            let Some(id) = self.distance_bin(d).filter(|&id| feeds[id]) else {
+            let walk = (&medium, &albedo, run.flights, start);
+            let Some((exit, id, log_ratio)) =
+                self.counted_walk(walk, &mut rng, &mut vertices, |id| feeds[id])
+            else {
                 continue;
             };
-            if n < self.min_order {
-                continue;
-            }
             let w = if run.flights == Flights::ANALOG {
                 scale as u64
             } else {
@@ -896,16 +866,39 @@ impl KernelConfig {
             if w == 0 {
                 continue;
             }
-            tally.cells[run.albedo][id].add_path(
-                &self.grid,
-                [x, y],
-                PairGrid::scale(d, mfp),
-                &vertices,
-                w,
-                &mut bins,
-            );
+            let scale = PairGrid::scale(exit[0].hypot(exit[1]), mfp);
+            tally.cells[run.albedo][id].add_path(&self.grid, exit, scale, &vertices, w, &mut bins);
         }
         tally
+    }
+
+    /// Walks one path (`walk`: medium, albedo, flights, entry state) with its
+    /// scattering vertices into `vertices`. It counts if it exits into a
+    /// distance bin that `feeds` admits after at least `min_order`
+    /// scatterings: then its exit point, distance bin and ln of its
+    /// likelihood ratio ([`walk_transformed`]).
+    fn counted_walk(
+        &self,
+        (medium, albedo, flights, start): (&Medium, &UniformAlbedo, Flights, Launched),
+        rng: &mut PathRng,
+        vertices: &mut Vec<[f64; 2]>,
+        feeds: impl Fn(usize) -> bool,
+    ) -> Option<([f64; 2], usize, f64)> {
+        vertices.clear();
+        let (fate, n, log_ratio) = walk_transformed(
+            medium,
+            albedo,
+            self.max_events,
+            flights,
+            start,
+            rng,
+            |v, _| vertices.push([v[0], v[1]]),
+        );
+        let Fate::Exit { x, y } = fate else {
+            return None;
+        };
+        let id = self.distance_bin(x.hypot(y)).filter(|&id| feeds(id))?;
+        (n >= self.min_order).then_some(([x, y], id, log_ratio))
     }
 
     /// Plans the simulation so that every cell gets at least `opts.target`
