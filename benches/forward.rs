@@ -27,6 +27,7 @@ fn config(alpha: f64, engine: Engine) -> ProfileConfig {
         max_events: DEFAULT_MAX_EVENTS,
         bins: RadialBins::default(),
         engine,
+        radiance: false,
     }
 }
 

@@ -157,6 +157,14 @@ struct ModelArgs {
     /// Basis BSSRDF for diffuse lights [default: $SVKERNEL_BASIS_DIFFUSE, else built in].
     #[arg(long)]
     basis_diffuse: Option<PathBuf>,
+    /// Basis of the radiance along the normal for collimated lights
+    /// [default: $SVKERNEL_BASIS_RADIANCE, else built in].
+    #[arg(long)]
+    basis_radiance: Option<PathBuf>,
+    /// Basis of the radiance along the normal for diffuse lights
+    /// [default: $SVKERNEL_BASIS_RADIANCE_DIFFUSE, else built in].
+    #[arg(long)]
+    basis_radiance_diffuse: Option<PathBuf>,
     /// Kernel meta-model [default: $SVKERNEL_MODEL, else built in].
     #[arg(long)]
     model: Option<PathBuf>,
@@ -169,8 +177,12 @@ struct ModelArgs {
 impl ModelArgs {
     fn load(&self) -> Result<Models> {
         Ok(Models::find(
-            self.basis.as_deref(),
-            self.basis_diffuse.as_deref(),
+            [
+                self.basis.as_deref(),
+                self.basis_diffuse.as_deref(),
+                self.basis_radiance.as_deref(),
+                self.basis_radiance_diffuse.as_deref(),
+            ],
             self.model.as_deref(),
         )?)
     }
@@ -301,6 +313,10 @@ enum Fit {
         /// Relative tolerance of LM's ftol/xtol (convergence criterion).
         #[arg(long, default_value_t = 1e-12)]
         tol: f64,
+        /// The profile to fit: the exitance, or the radiance along the
+        /// normal (profiles simulated with --radiance)
+        #[arg(long, value_enum, default_value = "exitance")]
+        observable: svkernel::forward::medium::Observable,
     },
     /// Export one profile's multiple-scattering fit problem and LM's optimum
     /// (for tools/nlopt_check.py).
@@ -499,9 +515,15 @@ struct ProfileArgs {
     /// pencil | collimated:R | diffuse:R (R in MFP).
     #[arg(long, default_value = "pencil")]
     source: String,
-    /// lanes (8-wide f32 SIMD) or scalar (plain f64).
-    #[arg(long, value_enum, default_value = "lanes")]
-    engine: Engine,
+    /// lanes (8-wide f32 SIMD) or scalar (plain f64) [default: lanes, or
+    /// scalar with --radiance]
+    #[arg(long, value_enum)]
+    engine: Option<Engine>,
+    /// Also tally the radiance leaving along the normal (next-event
+    /// estimation at every scattering vertex; scalar engine), for a basis of
+    /// the radiance observable (`fit profiles --observable radiance`)
+    #[arg(long)]
+    radiance: bool,
     /// Also write the per-bin arrays as OUT.npy.
     #[arg(long)]
     npy: bool,
@@ -716,7 +738,11 @@ fn simulate_profile(a: ProfileArgs) -> Result<()> {
     let medium = Medium::new(a.albedo, m.g, m.eta, m.density, a.thickness)?;
     let source = Source::parse(&a.source)?;
     let (shard, opts) = a.run.options()?;
-    let engine = a.engine;
+    let engine = a.engine.unwrap_or(if a.radiance {
+        Engine::Scalar
+    } else {
+        Engine::Lanes
+    });
     let config = ProfileConfig {
         medium,
         source,
@@ -725,6 +751,7 @@ fn simulate_profile(a: ProfileArgs) -> Result<()> {
         max_events: a.run.max_events,
         bins: RadialBins::default(),
         engine,
+        radiance: a.radiance,
     };
     config.validate()?;
     let (tally, wall_s) = config.run(shard, &opts)?;
@@ -778,7 +805,15 @@ fn print_summary(doc: &ProfileDoc) {
         doc.wall_s,
         doc.events as f64 / doc.wall_s.max(1e-9)
     );
-    let _ = std::io::stdout().lock().write_all(text.as_bytes());
+    let radiance = doc.radiance.as_ref().map_or(String::new(), |r| {
+        format!(
+            "normal radiance ∫L dA: L_1 = {:.6} ± {:.6} /sr   L_m = {:.6} ± {:.6} /sr\n",
+            r.single.value, r.single.stderr, r.multi.value, r.multi.stderr
+        )
+    });
+    let _ = std::io::stdout()
+        .lock()
+        .write_all((text + &radiance).as_bytes());
 }
 
 /// Merges profile or kernel shards (the format of the first input decides).
@@ -878,6 +913,7 @@ fn fit(f: Fit) -> Result<()> {
             components,
             degree,
             tol,
+            observable,
         } => {
             if !(tol > 0.0 && tol < 1.0) {
                 bail!("invalid --tol = {tol}: must be in (0, 1)");
@@ -893,16 +929,19 @@ fn fit(f: Fit) -> Result<()> {
                     .unwrap_or(std::path::Path::new("."))
                     .join("basis_report")
             });
-            let r = report::fit_profiles(&input, &out, &dir, components, degree, tol)?;
+            let r = report::fit_profiles(&input, &out, &dir, components, degree, tol, observable)?;
             println!("{}", report::markdown_table(&r.training_accuracy));
+            // The α = 1 energy law holds for the exitance only.
+            let energy = match observable {
+                svkernel::forward::medium::Observable::Exitance => format!(
+                    "; R_d(α=1) = {:.5} (target {:.5})",
+                    r.rd_at_one.0, r.rd_at_one.1
+                ),
+                svkernel::forward::medium::Observable::Radiance => String::new(),
+            };
             println!(
-                "joint fit: {} after {} evaluations, χ²/dof = {:.3}; R_d(α=1) = {:.5} (target {:.5}); {:.1} s",
-                r.joint.termination,
-                r.joint.evaluations,
-                r.joint.chi2_per_dof,
-                r.rd_at_one.0,
-                r.rd_at_one.1,
-                r.wall_s
+                "joint fit: {} after {} evaluations, χ²/dof = {:.3}{energy}; {:.1} s",
+                r.joint.termination, r.joint.evaluations, r.joint.chi2_per_dof, r.wall_s
             );
             println!(
                 "wrote {} and {}/report.json + plots",

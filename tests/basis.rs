@@ -4,6 +4,7 @@
 use std::path::Path;
 use svkernel::fit::exp_mixture::{BinnedDensity, Order, fit_mixture};
 use svkernel::fit::lm::FitOptions;
+use svkernel::forward::medium::Observable;
 use svkernel::jobs::fit_profiles::{accuracy, load_profiles};
 use svkernel::metamodel::basis::BasisModel;
 use svkernel::testing::Z_MC;
@@ -16,7 +17,7 @@ fn every_training_profile_converges_from_the_shipped_initialisation() {
     let docs = load_profiles(Path::new(PROFILES)).unwrap();
     assert!(docs.len() >= 32);
     for d in &docs {
-        let data = BinnedDensity::from_profile(d, Order::Multi);
+        let data = BinnedDensity::from_profile(d, Order::Multi, Observable::Exitance);
         let (m, rep) = fit_mixture("p_m", &data, 6, 1, &FitOptions::default())
             .unwrap_or_else(|e| panic!("α = {}: {e}", d.config.medium.alpha));
         assert!(
@@ -56,7 +57,7 @@ fn single_scattering_is_linear_in_albedo() {
     let model = BasisModel::load(Path::new(MODEL)).unwrap();
     for d in load_profiles(Path::new(PROFILES)).unwrap() {
         let a = d.config.medium.alpha;
-        let data = BinnedDensity::from_profile(&d, Order::Single);
+        let data = BinnedDensity::from_profile(&d, Order::Single, Observable::Exitance);
         let (mut chi2, mut n) = (0.0, 0);
         for j in 0..data.len() - 1 {
             if data.lo[j] < 1e-2 || data.hi[j] > 20.0 {
@@ -164,9 +165,16 @@ fn disk_source_profiles_are_refused() {
     for d in &mut docs {
         d.config.source = Source::Collimated { radius: 1.0 };
     }
-    let err = fit_basis(&docs, 6, 5, &FitOptions::default(), serde_json::Value::Null)
-        .err()
-        .expect("a disk source must be refused")
-        .to_string();
+    let err = fit_basis(
+        &docs,
+        Observable::Exitance,
+        6,
+        5,
+        &FitOptions::default(),
+        serde_json::Value::Null,
+    )
+    .err()
+    .expect("a disk source must be refused")
+    .to_string();
     assert!(err.contains("disk source"), "{err}");
 }

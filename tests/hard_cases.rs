@@ -16,6 +16,7 @@ fn run(alpha: f64, g: f64, eta: f64, rho: f64, source: Source, engine: Engine) -
         max_events: 20_000,
         bins: RadialBins::default(),
         engine,
+        radiance: false,
     };
     let (tally, wall) = config.run(None, &RunOptions::default()).unwrap();
     ProfileDoc::new(
@@ -109,6 +110,7 @@ fn radial_bins_end_at_r_max() {
             per_decade: 20,
         },
         engine: Engine::Scalar,
+        radiance: false,
     };
     for r_max in [52.0, 60.0] {
         let err = with(r_max).validate().unwrap_err().to_string();

@@ -29,6 +29,7 @@ fn simulate(
         max_events,
         bins: RadialBins::default(),
         engine,
+        radiance: false,
     };
     let (tally, wall) = config.run(None, &RunOptions::default()).unwrap();
     let chunks = vec![chunk_range(paths, None)];

@@ -8,21 +8,31 @@
 #   SOURCE=diffuse bash tools/make_profiles.sh   # diffuse incidence at a point:
 #                                          # data/profiles/eta1.5_g0.3_diffuse/a*.json
 #   SHARD=k/N bash tools/make_profiles.sh  # one slice of every simulation (merge later)
+#   RADIANCE=1 bash tools/make_profiles.sh # also the radiance along the normal (scalar
+#                                          # engine, a quarter of the paths: next-event
+#                                          # estimation is the quieter estimator):
+#                                          # data/profiles/eta1.5_g0.3_pencil_radiance/a*.json
 #
 # Takes about 45 s on 2 cores (lanes engine; 1.42e9 paths, 9.8e9 scattering events).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source=${SOURCE:-pencil}
-out=${OUT:-data/profiles/eta1.5_g0.3_$source}
+radiance=${RADIANCE:-}
+suffix=${radiance:+_radiance}
+out=${OUT:-data/profiles/eta1.5_g0.3_$source$suffix}
 mkdir -p "$out"
 cargo build --release --quiet
 shard_args=()
 [ -n "${SHARD:-}" ] && shard_args=(--shard "$SHARD")
+radiance_args=()
+[ -n "$radiance" ] && radiance_args=(--radiance)
 run() {  # albedo paths seed
-  local f="$out/a$1.json"
+  local f="$out/a$1.json" paths=$2
   [ -n "${SHARD:-}" ] && f="$out/a$1.shard${SHARD/\//of}.json"
+  [ -n "$radiance" ] && paths=$(python3 -c "print(f'{float(\"$2\") / 4:.4g}')")
   ./target/release/svkernel simulate profile --albedo "$1" --eta 1.5 --g 0.3 \
-    --source "$source" --paths "$2" --seed "$3" "${shard_args[@]}" --resume --out "$f" | sed -n 1p
+    --source "$source" --paths "$paths" --seed "$3" "${radiance_args[@]}" "${shard_args[@]}" \
+    --resume --out "$f" | sed -n 1p
 }
 run 0.010000 696e6 1000
 run 0.070875 88e6 1001

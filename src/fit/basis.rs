@@ -21,9 +21,10 @@
 use super::exp_mixture::{BinnedDensity, Order, fit_mixture, safe_exp, theta_from_rate};
 use super::lm::{Blocks, FitError, FitOptions, FitReport, solve};
 use crate::forward::medium::Source;
+use crate::forward::medium::{Incidence, Observable};
 use crate::forward::profile::ProfileDoc;
 use crate::metamodel::basis::{
-    BASIS_FORMAT, BASIS_VERSION, BasisModel, ExpMixture, albedo_coordinate, chebyshev,
+    B_MAX, BASIS_FORMAT, BASIS_VERSION, BasisModel, ExpMixture, albedo_coordinate, chebyshev,
     component_bin, rate_from_theta,
 };
 use levenberg_marquardt::LeastSquaresProblem;
@@ -40,11 +41,12 @@ pub struct TrainingProfile {
 }
 
 impl TrainingProfile {
-    pub fn from_doc(doc: &ProfileDoc) -> Self {
+    /// The profile of `observable` in `doc`.
+    pub fn from_doc(doc: &ProfileDoc, observable: Observable) -> Self {
         TrainingProfile {
             alpha: doc.config.medium.alpha,
-            multi: BinnedDensity::from_profile(doc, Order::Multi),
-            single: BinnedDensity::from_profile(doc, Order::Single),
+            multi: BinnedDensity::from_profile(doc, Order::Multi, observable),
+            single: BinnedDensity::from_profile(doc, Order::Single, observable),
         }
     }
 }
@@ -57,6 +59,10 @@ pub struct BasisFit<'a> {
     /// R₁ at α = 1 and R_sp: the target of the energy constraint.
     pub single_energy: f64,
     pub r_sp: f64,
+    /// Whether the α = 1 energy constraint holds (exitance: all light that
+    /// enters a conservative half-space leaves; the normal radiance has no
+    /// such law).
+    pub energy_constraint: bool,
     /// (a_kj…, b_kj…), each K × (degree + 1), row-major.
     pub theta: DVector<f64>,
 }
@@ -91,7 +97,7 @@ impl BasisFit<'_> {
     /// The model this parameter vector describes.
     pub fn model(
         &self,
-        incidence: crate::forward::medium::Incidence,
+        (incidence, observable): (Incidence, Observable),
         single: ExpMixture,
         albedo_range: (f64, f64),
         eta: f64,
@@ -110,6 +116,7 @@ impl BasisFit<'_> {
             eta,
             g,
             incidence,
+            observable,
             degree: self.degree,
             ln_a: rows(0),
             ln_b: rows(self.k * nc),
@@ -121,7 +128,7 @@ impl BasisFit<'_> {
     }
 
     fn n_residuals(&self) -> usize {
-        self.data.iter().map(|d| d.multi.len()).sum::<usize>() + 1
+        self.data.iter().map(|d| d.multi.len()).sum::<usize>() + usize::from(self.energy_constraint)
     }
 }
 
@@ -152,9 +159,11 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for BasisFit<'_> {
                 row += 1;
             }
         }
-        let (a, b, _, _) = self.components(1.0);
-        let e: f64 = a.iter().zip(&b).map(|(a, b)| a / (b * b)).sum();
-        r[row] = (e + self.single_energy - (1.0 - self.r_sp)) / ENERGY_CONSTRAINT_SIGMA;
+        if self.energy_constraint {
+            let (a, b, _, _) = self.components(1.0);
+            let e: f64 = a.iter().zip(&b).map(|(a, b)| a / (b * b)).sum();
+            r[row] = (e + self.single_energy - (1.0 - self.r_sp)) / ENERGY_CONSTRAINT_SIGMA;
+        }
         r.iter().all(|v| v.is_finite()).then_some(r)
     }
 
@@ -178,7 +187,7 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for BasisFit<'_> {
             }
         }
         let (a, b, db, t) = self.components(1.0);
-        for k in 0..self.k {
+        for k in (0..self.k).filter(|_| self.energy_constraint) {
             // E_k = A_k/B_k²: ∂E_k/∂ln A = E_k, ∂E_k/∂ln B = −2E_k.
             let e_k = a[k] / (b[k] * b[k]);
             for (q, tq) in t.iter().enumerate() {
@@ -198,7 +207,9 @@ impl Blocks for BasisFit<'_> {
             out.push((format!("alpha={:.6}", p.alpha), row..row + p.multi.len()));
             row += p.multi.len();
         }
-        out.push(("energy(alpha=1)".into(), row..row + 1));
+        if self.energy_constraint {
+            out.push(("energy(alpha=1)".into(), row..row + 1));
+        }
         out
     }
 }
@@ -241,6 +252,56 @@ pub fn pooled_single(data: &[TrainingProfile]) -> BinnedDensity {
     out
 }
 
+/// ∫L₁ dA (sr⁻¹ per unit incident power) of the radiance along the normal
+/// from single scattering under normal incidence at α = 1: the first vertex
+/// lies straight below x_i at depth z ~ σ_t e^{−σ_t z} and sends
+/// f_HG(−1)·e^{−σ_t z}·T(1)/η² back up the same line, so
+/// L₁ = (1 − R_sp)·f_HG(−1)·T(1)/(2η²), all of it at x_i, independent of σ_t.
+pub fn pencil_single_radiance(g: f64, eta: f64) -> f64 {
+    (1.0 - crate::forward::fresnel::r_specular(eta))
+        * crate::forward::sampling::hg_pdf(g, -1.0)
+        * crate::forward::walk::normal_exit_factor(eta)
+        / 2.0
+}
+
+/// The report of a closed-form mixture against binned data (nothing
+/// fitted: every degree of freedom is a bin).
+fn closed_form_report(what: &str, data: &BinnedDensity, model: &ExpMixture) -> FitReport {
+    let chi2: f64 = (0..data.len())
+        .map(|j| {
+            let m = if data.hi[j].is_infinite() {
+                model.energy() - model.cdf(data.lo[j])
+            } else {
+                model.bin_mean(data.lo[j], data.hi[j])
+            };
+            ((m - data.y[j]) / data.sigma[j]).powi(2)
+        })
+        .sum();
+    let dof = data.len();
+    FitReport {
+        what: what.into(),
+        termination: "closed form".into(),
+        success: true,
+        evaluations: 1,
+        chi2,
+        dof,
+        chi2_per_dof: chi2 / dof.max(1) as f64,
+        block_rms: vec![("all".into(), (chi2 / dof.max(1) as f64).sqrt())],
+        wall_s: 0.0,
+    }
+}
+
+/// A point mass of `energy` at r = 0 as an exponential of the largest rate
+/// the basis allows (a decay length of 1/[`B_MAX`] = 1e-4 MFP, far below a
+/// texel): evaluated, integrated and sampled like every other component.
+pub fn point_single(energy: f64) -> ExpMixture {
+    ExpMixture {
+        a: vec![energy * B_MAX],
+        b: vec![B_MAX],
+        power: 0,
+    }
+}
+
 /// Everything a basis fit produces.
 pub struct BasisFitOutcome {
     pub model: BasisModel,
@@ -254,6 +315,7 @@ pub struct BasisFitOutcome {
 /// `docs` (all of one medium and illumination).
 pub fn fit_basis(
     docs: &[ProfileDoc],
+    observable: Observable,
     k: usize,
     degree: usize,
     opts: &FitOptions,
@@ -292,13 +354,34 @@ pub fn fit_basis(
              sources (pencil, or diffuse at a point)"
         )));
     }
-    let mut data: Vec<TrainingProfile> = docs.iter().map(TrainingProfile::from_doc).collect();
+    if observable == Observable::Radiance
+        && let Some(d) = docs.iter().find(|d| d.bins.l_m.is_empty())
+    {
+        return Err(bad(format!(
+            "profile at α = {} holds no radiance tally (simulate it with --radiance)",
+            d.config.medium.alpha
+        )));
+    }
+    let mut data: Vec<TrainingProfile> = docs
+        .iter()
+        .map(|d| TrainingProfile::from_doc(d, observable))
+        .collect();
     data.sort_by(|a, b| a.alpha.total_cmp(&b.alpha));
 
-    // Single scattering at α = 1, pooled over all profiles.
+    // Single scattering at α = 1, pooled over all profiles; in closed form
+    // for the normal radiance under normal incidence, a point at x_i.
     let pooled = pooled_single(&data);
-    let (single, single_rep) =
-        fit_mixture("single scattering p1(r; 1)", &pooled, k.min(4), 0, opts)?;
+    let (single, single_rep) = match (observable, c0.source.incidence()) {
+        (Observable::Radiance, Incidence::Pencil) => {
+            let m = &c0.medium;
+            let energy = pencil_single_radiance(m.g, m.eta);
+            let model = point_single(energy);
+            let report =
+                closed_form_report("single scattering L1(r; 1), closed form", &pooled, &model);
+            (model, report)
+        }
+        _ => fit_mixture("single scattering p1(r; 1)", &pooled, k.min(4), 0, opts)?,
+    };
 
     // Per-profile fits: the joint fit's starting point, and diagnostics for
     // the report (non-convergence is recorded there; bad data is an error).
@@ -353,12 +436,13 @@ pub fn fit_basis(
         degree,
         single_energy: single.energy(),
         r_sp,
+        energy_constraint: observable == Observable::Exitance,
         theta,
     };
     let (solved, joint) = solve("basis (joint, all albedos)", problem, opts)?;
     let range = (data[0].alpha, data[data.len() - 1].alpha);
     let model = solved.model(
-        c0.source.incidence(),
+        (c0.source.incidence(), observable),
         single,
         range,
         c0.medium.eta,
@@ -432,6 +516,7 @@ mod tests {
                 degree,
                 single_energy: 0.05,
                 r_sp: 0.04,
+                energy_constraint: true,
                 theta,
             };
             let err = jacobian_mismatch(&mut p);

@@ -16,6 +16,7 @@
 //! ∂m_j/∂ln B_k = (A_k e^{−B_k lo_j}/Δ_j)·[Δ_j e^{−B_k Δ_j} − lo_j(1 − e^{−B_k Δ_j})] − c_kj.
 
 use super::lm::{Blocks, FitError, FitOptions, FitReport, nnls, solve};
+use crate::forward::medium::Observable;
 use crate::forward::profile::ProfileDoc;
 use crate::metamodel::basis::{B_MAX, B_MIN, ExpMixture, component_bin, rate_from_theta};
 use levenberg_marquardt::LeastSquaresProblem;
@@ -39,18 +40,32 @@ pub enum Order {
 }
 
 impl BinnedDensity {
-    /// The rings of `doc` (inner disk included, overflow excluded). A ring
-    /// with no count gets the standard error of one count, so empty bins
-    /// pull the model toward zero without infinite weight.
-    pub fn from_profile(doc: &ProfileDoc, order: Order) -> Self {
+    /// The rings of `doc` (inner disk included, overflow excluded) of the
+    /// exitance (`p_1`, `p_m`) or of the radiance along the normal (`l_1`,
+    /// `l_m`, which the document must hold), and the tail bin [r_max, ∞)
+    /// with the energy beyond r_max. A ring with no count gets the standard
+    /// error of one count (of one path's largest next-event contribution,
+    /// f_HG(1)·T(1)/η², for radiance), so empty bins pull the model toward
+    /// zero without infinite weight.
+    pub fn from_profile(doc: &ProfileDoc, order: Order, observable: Observable) -> Self {
         let b = &doc.bins;
-        let (y, s) = match order {
-            Order::Single => (&b.p_1, &b.p_1_stderr),
-            Order::Multi => (&b.p_m, &b.p_m_stderr),
+        let (y, s) = match (observable, order) {
+            (Observable::Exitance, Order::Single) => (&b.p_1, &b.p_1_stderr),
+            (Observable::Exitance, Order::Multi) => (&b.p_m, &b.p_m_stderr),
+            (Observable::Radiance, Order::Single) => (&b.l_1, &b.l_1_stderr),
+            (Observable::Radiance, Order::Multi) => (&b.l_m, &b.l_m_stderr),
         };
-        let weight = crate::forward::walk::entry_weight(&doc.config.source, doc.config.medium.eta);
+        let m = &doc.config.medium;
+        let weight = crate::forward::walk::entry_weight(&doc.config.source, m.eta);
         let power = doc.config.source.power();
         let n = doc.paths.max(1) as f64;
+        let unit = match observable {
+            Observable::Exitance => 1.0,
+            Observable::Radiance => {
+                crate::forward::sampling::hg_pdf(m.g, 1.0)
+                    * crate::forward::walk::normal_exit_factor(m.eta)
+            }
+        };
         let mut out = BinnedDensity {
             lo: vec![],
             hi: vec![],
@@ -59,26 +74,42 @@ impl BinnedDensity {
         };
         for k in 0..y.len() {
             let (lo, hi) = (b.edges[k], b.edges[k + 1]);
-            let one_count = power * weight / (n * (hi - lo));
+            let one_count = unit * power * weight / (n * (hi - lo));
             out.lo.push(lo);
             out.hi.push(hi);
             out.y.push(y[k]);
             out.sigma.push(s[k].max(one_count));
         }
-        // The tail bin [r_max, ∞): its energy from the overflow count.
-        let counts = match order {
-            Order::Single => &doc.tally.exit_single,
-            Order::Multi => &doc.tally.exit_multi,
+        // The tail bin [r_max, ∞): its energy from the overflow bin.
+        let tail = match observable {
+            Observable::Exitance => {
+                let counts = match order {
+                    Order::Single => &doc.tally.exit_single,
+                    Order::Multi => &doc.tally.exit_multi,
+                };
+                let norm = crate::forward::tally::Normalizer {
+                    paths: doc.tally.paths,
+                    weight,
+                };
+                norm.fraction(*counts.last().unwrap_or(&0))
+            }
+            Observable::Radiance => {
+                let over = doc.radiance.as_ref().map(|r| &r.overflow);
+                let e = over.map(|o| if order == Order::Single { o.0 } else { o.1 });
+                let e = e.unwrap_or(crate::forward::tally::Estimate {
+                    value: 0.0,
+                    stderr: 0.0,
+                });
+                crate::forward::tally::Estimate {
+                    value: e.value / power,
+                    stderr: e.stderr / power,
+                }
+            }
         };
-        let norm = crate::forward::tally::Normalizer {
-            paths: doc.tally.paths,
-            weight,
-        };
-        let tail = norm.fraction(*counts.last().unwrap_or(&0));
         out.lo.push(*b.edges.last().unwrap_or(&0.0));
         out.hi.push(f64::INFINITY);
         out.y.push(power * tail.value);
-        out.sigma.push(power * tail.stderr.max(weight / n));
+        out.sigma.push(power * tail.stderr.max(unit * weight / n));
         out
     }
 

@@ -144,6 +144,40 @@ impl Incidence {
     }
 }
 
+/// What leaves the surface and is measured: the radiant exitance, or the
+/// radiance along the normal (what an orthographic camera looking straight
+/// down sees). A basis profile is of one observable. Written `exitance` /
+/// `radiance` in documents.
+#[derive(
+    Clone,
+    Copy,
+    Debug,
+    Default,
+    PartialEq,
+    Eq,
+    Hash,
+    serde::Serialize,
+    serde::Deserialize,
+    clap::ValueEnum,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum Observable {
+    /// Radiant exitance M(x, y) per unit incident irradiance.
+    #[default]
+    Exitance,
+    /// Radiance leaving along the normal.
+    Radiance,
+}
+
+impl Observable {
+    pub fn name(self) -> &'static str {
+        match self {
+            Observable::Exitance => "exitance",
+            Observable::Radiance => "radiance",
+        }
+    }
+}
+
 impl std::fmt::Display for Source {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {

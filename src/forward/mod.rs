@@ -19,6 +19,7 @@
 //!     max_events: DEFAULT_MAX_EVENTS,
 //!     bins: RadialBins::default(),
 //!     engine: Engine::Lanes,
+//!     radiance: false,
 //! };
 //! let (tally, wall_s) = config.run(None, &RunOptions::default()).unwrap();
 //! let doc = ProfileDoc::new(config, None, vec![(0, 2)], tally, wall_s, Provenance::current());

@@ -4,7 +4,7 @@
 use super::medium::{Medium, Source};
 use super::runner::{self, RunOptions, Shard, chunk_paths, chunk_range};
 use super::tally::{BinLookup, Estimate, Normalizer, ProfileTally, RadialBins};
-use super::walk::{entry_weight, simulate_scalar};
+use super::walk::{entry_weight, simulate_scalar, simulate_scalar_radiance as simulate_radiance};
 use crate::error::{Error, Result};
 use crate::provenance::Provenance;
 use serde::{Deserialize, Serialize};
@@ -40,6 +40,10 @@ pub struct ProfileConfig {
     pub max_events: u32,
     pub bins: RadialBins,
     pub engine: Engine,
+    /// Also tally the radiance leaving along the normal (next-event
+    /// estimation; the scalar engine only).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub radiance: bool,
 }
 
 impl ProfileConfig {
@@ -54,6 +58,13 @@ impl ProfileConfig {
         )?;
         if self.paths == 0 {
             return Err(Error::param("paths", 0, ">= 1"));
+        }
+        if self.radiance && self.engine != Engine::Scalar {
+            return Err(Error::param(
+                "engine",
+                "lanes",
+                "scalar when the radiance is tallied (the lane walk has no next-event estimation)",
+            ));
         }
         if self.max_events == 0 {
             return Err(Error::param("max_events", 0, ">= 1"));
@@ -90,9 +101,10 @@ impl ProfileConfig {
     pub fn simulate_chunk(&self, c: u64, bins: &BinLookup) -> ProfileTally {
         assert_eq!(bins.bins(), &self.bins, "a lookup of other bins");
         let (first, count) = chunk_paths(self.paths, c);
-        let walk = match self.engine {
-            Engine::Scalar => simulate_scalar,
-            Engine::Lanes => super::simd::simulate_lanes,
+        let walk = match (self.engine, self.radiance) {
+            (Engine::Scalar, false) => simulate_scalar,
+            (Engine::Scalar, true) => simulate_radiance,
+            (Engine::Lanes, _) => super::simd::simulate_lanes,
         };
         walk(
             &self.medium,
@@ -105,6 +117,15 @@ impl ProfileConfig {
         )
     }
 
+    /// An empty tally of this simulation's shape.
+    pub fn empty_tally(&self) -> ProfileTally {
+        if self.radiance {
+            ProfileTally::with_radiance(&self.bins)
+        } else {
+            ProfileTally::new(&self.bins)
+        }
+    }
+
     /// Runs the whole simulation or one shard of it.
     pub fn run(&self, shard: Option<Shard>, opts: &RunOptions) -> Result<(ProfileTally, f64)> {
         self.validate()?;
@@ -114,7 +135,7 @@ impl ProfileConfig {
         let out = runner::run(
             &key,
             range,
-            ProfileTally::new(&self.bins),
+            self.empty_tally(),
             |c| self.simulate_chunk(c, &lookup),
             opts,
         )?;
@@ -137,6 +158,58 @@ pub struct BinResults {
     pub r_m: Vec<f64>,
     /// Fraction of power exiting beyond r_max (single + multiple).
     pub overflow: f64,
+    /// Radiance along the normal, when tallied: ring averages of 2πr·L(r)
+    /// (1/(MFP·sr) per unit incident power) by scattering order, with their
+    /// standard errors; empty otherwise.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub l_1: Vec<f64>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub l_1_stderr: Vec<f64>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub l_m: Vec<f64>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub l_m_stderr: Vec<f64>,
+}
+
+/// The radiance along the normal integrated over the surface, ∫L dA per
+/// unit incident power (sr⁻¹), by scattering order, with its contribution
+/// beyond r_max.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NormalRadiance {
+    pub single: Estimate,
+    pub multi: Estimate,
+    /// (single, multi) beyond r_max, the tally's overflow bin.
+    pub overflow: (Estimate, Estimate),
+}
+
+impl NormalRadiance {
+    /// From the tally's fixed-point sums: the mean per launched path times
+    /// the source's power and entry weight.
+    fn new(t: &super::tally::RadianceTally, paths: u64, scale: f64) -> Self {
+        let last = t.single.len() - 1;
+        let est = |sum: u128, sq: u128| radiance_estimate(sum, sq, paths, scale);
+        NormalRadiance {
+            single: est(t.single.iter().sum(), t.single_path_sq),
+            multi: est(t.multi.iter().sum(), t.multi_path_sq),
+            overflow: (
+                est(t.single[last], t.single_sq[last]),
+                est(t.multi[last], t.multi_sq[last]),
+            ),
+        }
+    }
+}
+
+/// The mean per path of a fixed-point sum (Σq, Σq²) over `paths` paths,
+/// times `scale`, with its standard error.
+fn radiance_estimate(sum: u128, sq: u128, paths: u64, scale: f64) -> Estimate {
+    use super::tally::RADIANCE_Q;
+    let n = paths.max(1) as f64;
+    let mean = sum as f64 / RADIANCE_Q / n;
+    let var = (sq as f64 / (RADIANCE_Q * RADIANCE_Q) / n - mean * mean).max(0.0);
+    Estimate {
+        value: scale * mean,
+        stderr: scale * (var / n).sqrt(),
+    }
 }
 
 /// The profile document: summary numbers at top level (names as in the CLI
@@ -160,6 +233,9 @@ pub struct ProfileDoc {
     pub transmitted_stderr: f64,
     /// Fraction of paths stopped at the event cap: bounds the bias of R_d.
     pub truncated: f64,
+    /// ∫L dA of the radiance along the normal, when tallied.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub radiance: Option<NormalRadiance>,
     /// R_d + R_sp + absorbed + transmitted + truncated (+ unscattered exits):
     /// equals 1 up to rounding, by construction of the analog walk.
     pub energy_balance: f64,
@@ -205,6 +281,10 @@ impl ProfileDoc {
         let truncated = norm.fraction(tally.truncated).value;
         let unscattered = norm.fraction(tally.exit_unscattered).value;
         let bins = bin_results(&config, &tally, &norm);
+        let radiance = tally
+            .radiance
+            .as_ref()
+            .map(|t| NormalRadiance::new(t, tally.paths, config.source.power() * norm.weight));
         ProfileDoc {
             format: PROFILE_FORMAT.into(),
             version: PROFILE_VERSION,
@@ -219,6 +299,7 @@ impl ProfileDoc {
             transmitted: transmitted.value,
             transmitted_stderr: transmitted.stderr,
             truncated,
+            radiance,
             energy_balance: r_d.value
                 + r_sp
                 + absorbed
@@ -247,6 +328,46 @@ impl ProfileDoc {
     }
 }
 
+/// One observable of a profile document: its total over the surface (R_d,
+/// or ∫L dA) and its ring densities by scattering order.
+pub struct Observed<'a> {
+    pub total: Estimate,
+    pub p_1: &'a [f64],
+    pub p_1_stderr: &'a [f64],
+    pub p_m: &'a [f64],
+    pub p_m_stderr: &'a [f64],
+}
+
+impl ProfileDoc {
+    /// The exitance or the radiance along the normal; `None` for radiance
+    /// when the simulation did not tally it.
+    pub fn observed(&self, observable: super::medium::Observable) -> Option<Observed<'_>> {
+        let b = &self.bins;
+        match observable {
+            super::medium::Observable::Exitance => Some(Observed {
+                total: self.r_d(),
+                p_1: &b.p_1,
+                p_1_stderr: &b.p_1_stderr,
+                p_m: &b.p_m,
+                p_m_stderr: &b.p_m_stderr,
+            }),
+            super::medium::Observable::Radiance => {
+                let r = self.radiance.as_ref()?;
+                Some(Observed {
+                    total: Estimate {
+                        value: r.single.value + r.multi.value,
+                        stderr: r.single.stderr.hypot(r.multi.stderr),
+                    },
+                    p_1: &b.l_1,
+                    p_1_stderr: &b.l_1_stderr,
+                    p_m: &b.l_m,
+                    p_m_stderr: &b.l_m_stderr,
+                })
+            }
+        }
+    }
+}
+
 impl crate::doc::Document for ProfileDoc {
     const FORMAT: &'static str = PROFILE_FORMAT;
     const VERSION: u32 = PROFILE_VERSION;
@@ -259,6 +380,24 @@ impl crate::doc::Document for ProfileDoc {
                 path,
                 "tally",
                 "bin count does not match config.bins",
+            ));
+        }
+        if let Some(r) = &doc.tally.radiance
+            && [&r.single, &r.single_sq, &r.multi, &r.multi_sq]
+                .iter()
+                .any(|v| v.len() != n)
+        {
+            return Err(Error::format(
+                path,
+                "tally.radiance",
+                "bin count does not match config.bins",
+            ));
+        }
+        if doc.tally.radiance.is_some() != doc.config.radiance {
+            return Err(Error::format(
+                path,
+                "tally.radiance",
+                "present if and only if config.radiance is true",
             ));
         }
         if doc.tally.accounted() != doc.tally.paths {
@@ -292,7 +431,24 @@ fn bin_results(config: &ProfileConfig, tally: &ProfileTally, norm: &Normalizer) 
         r_m.push(power * em.value / area);
     }
     let last = config.bins.len() - 1;
+    let (mut l_1, mut l_1_stderr, mut l_m, mut l_m_stderr) = (vec![], vec![], vec![], vec![]);
+    if let Some(t) = &tally.radiance {
+        let scale = power * norm.weight;
+        for k in 0..rings {
+            let width = edges[k + 1] - edges[k];
+            let e1 = radiance_estimate(t.single[k], t.single_sq[k], tally.paths, scale / width);
+            let em = radiance_estimate(t.multi[k], t.multi_sq[k], tally.paths, scale / width);
+            l_1.push(e1.value);
+            l_1_stderr.push(e1.stderr);
+            l_m.push(em.value);
+            l_m_stderr.push(em.stderr);
+        }
+    }
     BinResults {
+        l_1,
+        l_1_stderr,
+        l_m,
+        l_m_stderr,
         edges,
         p_1,
         p_1_stderr,
@@ -317,7 +473,7 @@ pub fn merge(
     let Some((_, first)) = docs.first() else {
         return Err(Error::param("merge inputs", "none", "at least one file"));
     };
-    let mut tally = ProfileTally::new(&first.config.bins);
+    let mut tally = first.config.empty_tally();
     let mut wall_s = 0.0;
     for (path, d) in docs {
         if d.config != first.config {

@@ -202,6 +202,86 @@ pub struct ProfileTally {
     pub truncated: u64,
     /// Scattering events simulated in total.
     pub events: u64,
+    /// Radiance along the normal by next-event estimation, when the
+    /// simulation tallies it ([`RadianceTally`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub radiance: Option<RadianceTally>,
+}
+
+/// Fixed-point scale of the radiance sums: one unit is 2⁻³² of a
+/// contribution (sr⁻¹).
+pub const RADIANCE_Q: f64 = 4_294_967_296.0;
+
+/// Radiance leaving along the normal, by next-event estimation from every
+/// scattering vertex (order 1: the first vertex; order ≥ 2: every later
+/// one), in fixed-point units of [`RADIANCE_Q`], so that sums stay exact to
+/// merge. Per radial bin: Σ over paths of the path's sum q in the bin, and
+/// Σ q² (for the standard error); `*_path_sq` is Σ over paths of the square
+/// of the path's sum over all bins (the error of the total).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RadianceTally {
+    pub single: Vec<u128>,
+    pub single_sq: Vec<u128>,
+    pub multi: Vec<u128>,
+    pub multi_sq: Vec<u128>,
+    pub single_path_sq: u128,
+    pub multi_path_sq: u128,
+}
+
+impl RadianceTally {
+    pub fn new(bins: &RadialBins) -> Self {
+        let n = bins.len();
+        RadianceTally {
+            single: vec![0; n],
+            single_sq: vec![0; n],
+            multi: vec![0; n],
+            multi_sq: vec![0; n],
+            single_path_sq: 0,
+            multi_path_sq: 0,
+        }
+    }
+
+    /// Adds `other` (exact, associative, commutative).
+    pub fn merge(&mut self, other: &RadianceTally) {
+        for (a, b) in [
+            (&mut self.single, &other.single),
+            (&mut self.single_sq, &other.single_sq),
+            (&mut self.multi, &other.multi),
+            (&mut self.multi_sq, &other.multi_sq),
+        ] {
+            for (a, b) in a.iter_mut().zip(b) {
+                *a += b;
+            }
+        }
+        self.single_path_sq += other.single_path_sq;
+        self.multi_path_sq += other.multi_path_sq;
+    }
+
+    /// Adds one path's contributions, `(bin, q, order ≥ 2)` per scattering
+    /// vertex in any order; `scratch` is reused between paths.
+    pub fn add_path(&mut self, contrib: &mut [(usize, u128, bool)]) {
+        contrib.sort_unstable_by_key(|c| (c.2, c.0));
+        let mut totals = [0u128; 2];
+        let mut k = 0;
+        while k < contrib.len() {
+            let (bin, multi) = (contrib[k].0, contrib[k].2);
+            let mut q = 0u128;
+            while k < contrib.len() && contrib[k].0 == bin && contrib[k].2 == multi {
+                q += contrib[k].1;
+                k += 1;
+            }
+            let (sum, sq) = if multi {
+                (&mut self.multi, &mut self.multi_sq)
+            } else {
+                (&mut self.single, &mut self.single_sq)
+            };
+            sum[bin] += q;
+            sq[bin] += q * q;
+            totals[usize::from(multi)] += q;
+        }
+        self.single_path_sq += totals[0] * totals[0];
+        self.multi_path_sq += totals[1] * totals[1];
+    }
 }
 
 impl ProfileTally {
@@ -216,6 +296,15 @@ impl ProfileTally {
             transmitted: 0,
             truncated: 0,
             events: 0,
+            radiance: None,
+        }
+    }
+
+    /// An empty tally that also tallies the radiance along the normal.
+    pub fn with_radiance(bins: &RadialBins) -> Self {
+        ProfileTally {
+            radiance: Some(RadianceTally::new(bins)),
+            ..ProfileTally::new(bins)
         }
     }
 
@@ -234,6 +323,11 @@ impl ProfileTally {
         self.transmitted += other.transmitted;
         self.truncated += other.truncated;
         self.events += other.events;
+        match (&mut self.radiance, &other.radiance) {
+            (Some(a), Some(b)) => a.merge(b),
+            (None, None) => {}
+            _ => panic!("merging a radiance tally with one without"),
+        }
     }
 
     /// Paths that ended in some way: equals `paths` for a finished tally.

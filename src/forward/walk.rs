@@ -36,9 +36,9 @@ use super::maps::{MajorantGrid, TexelMap};
 use super::medium::{Medium, Source};
 use super::rng::{PathRng, threshold_u32, unit_f64, unit_open0_f64};
 use super::sampling::{
-    Vec3, rotate_direction, sample_cosine_cos_theta, sample_disk_concentric, sample_hg_cos,
+    Vec3, hg_pdf, rotate_direction, sample_cosine_cos_theta, sample_disk_concentric, sample_hg_cos,
 };
-use super::tally::{BinLookup, ProfileTally};
+use super::tally::{BinLookup, ProfileTally, RADIANCE_Q};
 use std::f64::consts::PI;
 
 /// A path inside the medium, right after entry.
@@ -668,6 +668,63 @@ pub fn simulate_scalar(
             Some(start) => {
                 let (fate, n) = walk(medium, max_events, start, &mut rng);
                 record(&mut tally, bins, fate, n);
+            }
+        }
+    }
+    tally
+}
+
+/// T(1)/η² (unitless): the radiance leaving along the normal per unit
+/// radiance arriving at the surface along the normal from inside, with
+/// T(1) = 1 − F(1) the normal Fresnel transmittance and 1/η² the change of
+/// radiance across the interface (L/n² is invariant; Pharr et al., pbrt-v4
+/// §11.2, "non-symmetric scattering and refraction").
+pub fn normal_exit_factor(eta: f64) -> f64 {
+    (1.0 - fresnel_dielectric(1.0, 1.0 / eta)) / (eta * eta)
+}
+
+/// [`simulate_scalar`] that also tallies the radiance along the normal by
+/// next-event estimation: every scattering vertex at depth |z| with arrival
+/// direction ω adds q = f_HG(ω·ẑ)·e^{−σ_t|z|}·T(1)/η² (sr⁻¹,
+/// [`normal_exit_factor`]) to the radial bin of its horizontal distance
+/// from the source point. The vertical ray to the surface stays inside the
+/// medium, so e^{−σ_t|z|} is its exact transmittance (in a slab too). The
+/// paths, their draws and so the exit counts are those of
+/// [`simulate_scalar`] exactly. The estimator is that of the brute-force
+/// reference's radiance images ([`crate::render::reference`]).
+pub fn simulate_scalar_radiance(
+    medium: &Medium,
+    source: &Source,
+    bins: &BinLookup,
+    max_events: u32,
+    seed: u64,
+    first: u64,
+    count: u64,
+) -> ProfileTally {
+    let mut tally = ProfileTally::with_radiance(bins.bins());
+    let albedo = UniformAlbedo(threshold_u32(medium.alpha));
+    let exit = normal_exit_factor(medium.eta);
+    let (g, sigma_t) = (medium.g, medium.sigma_t());
+    let mut contrib: Vec<(usize, u128, bool)> = Vec::new();
+    for path in first..first + count {
+        tally.paths += 1;
+        let mut rng = PathRng::new(seed, path);
+        match launch(source, medium.eta, &mut rng) {
+            None => tally.specular += 1,
+            Some(start) => {
+                contrib.clear();
+                let mut order = 0u32;
+                let visit = |v: Vec3, w: Vec3| {
+                    order += 1;
+                    let q = hg_pdf(g, w[2]) * (-sigma_t * v[2].abs()).exp() * exit;
+                    let bin = bins.index((v[0] * v[0] + v[1] * v[1]).sqrt());
+                    contrib.push((bin, (q * RADIANCE_Q).round() as u128, order >= 2));
+                };
+                let (fate, n) = walk_general(medium, &albedo, max_events, start, &mut rng, visit);
+                record(&mut tally, bins, fate, n);
+                if let Some(r) = &mut tally.radiance {
+                    r.add_path(&mut contrib);
+                }
             }
         }
     }

@@ -45,6 +45,7 @@ pub fn run(out: &Path, paths: u64, models: &Models, progress: bool) -> Result<De
         max_events: DEFAULT_MAX_EVENTS,
         bins: RadialBins::default(),
         engine: Engine::Lanes,
+        radiance: false,
     };
     let opts = RunOptions {
         progress,

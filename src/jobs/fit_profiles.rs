@@ -6,6 +6,7 @@
 use crate::error::{Error, Result};
 use crate::fit::basis::{BasisFitOutcome, fit_basis};
 use crate::fit::lm::{FitOptions, FitReport};
+use crate::forward::medium::Observable;
 use crate::forward::profile::ProfileDoc;
 use crate::jobs::plot::{Axes, Series, chart, ring_points};
 use crate::metamodel::basis::{BasisModel, ExpMixture, RadialProfile};
@@ -69,33 +70,41 @@ fn ring_energy(m: &RadialProfile, lo: f64, hi: f64) -> f64 {
 pub fn accuracy(model: &BasisModel, doc: &ProfileDoc) -> AccuracyRow {
     let alpha = doc.config.medium.alpha;
     let b = &doc.bins;
+    let Some(o) = doc.observed(model.observable) else {
+        panic!("a profile without the model's observable (fit_basis refuses it)")
+    };
     let mix = model.profile(alpha);
     let cb = RadialProfile {
         parts: vec![burley::profile(doc.R_d)],
     };
     let (mut s_model, mut s_cb, mut s_noise) = (0.0, 0.0, 0.0);
-    for k in 0..b.p_1.len() {
+    for k in 0..o.p_1.len() {
         let (lo, hi) = (b.edges[k], b.edges[k + 1]);
         if lo < RADIAL_RANGE.0 || hi > RADIAL_RANGE.1 {
             continue;
         }
         let w = hi - lo;
-        let e_sim = (b.p_1[k] + b.p_m[k]) * w;
-        let var = (b.p_1_stderr[k].powi(2) + b.p_m_stderr[k].powi(2)) * w * w;
+        let e_sim = (o.p_1[k] + o.p_m[k]) * w;
+        let var = (o.p_1_stderr[k].powi(2) + o.p_m_stderr[k].powi(2)) * w * w;
         s_model += (ring_energy(&mix, lo, hi) - e_sim).powi(2);
         s_cb += (ring_energy(&cb, lo, hi) - e_sim).powi(2);
         s_noise += var;
     }
-    let rd = doc.R_d.max(1e-300);
+    let rd = o.total.value.max(1e-300);
     let rd_model = model.r_d(alpha);
+    // Christensen–Burley is a profile of the exitance.
+    let burley = match model.observable {
+        Observable::Exitance => s_cb.sqrt() / rd,
+        Observable::Radiance => f64::NAN,
+    };
     AccuracyRow {
         alpha,
-        rd_sim: doc.R_d,
-        rd_sim_stderr: doc.R_d_stderr,
+        rd_sim: o.total.value,
+        rd_sim_stderr: o.total.stderr,
         rd_model,
         rd_rel_err: rd_model / rd - 1.0,
         radial_l2_model: s_model.sqrt() / rd,
-        radial_l2_burley: s_cb.sqrt() / rd,
+        radial_l2_burley: burley,
         radial_l2_noise: s_noise.sqrt() / rd,
     }
 }
@@ -125,6 +134,7 @@ pub fn fit_profiles(
     k: usize,
     degree: usize,
     tol: f64,
+    observable: Observable,
 ) -> Result<BasisReport> {
     let start = std::time::Instant::now();
     let docs = load_profiles(in_dir)?;
@@ -141,6 +151,7 @@ pub fn fit_profiles(
         per_profile,
     } = fit_basis(
         &docs,
+        observable,
         k,
         degree,
         &FitOptions {
@@ -177,7 +188,7 @@ pub fn export_problem(doc: &ProfileDoc, k: usize) -> Result<serde_json::Value> {
         BinnedDensity, ExpMixtureFit, Order, fit_mixture, theta_from_rate,
     };
     use levenberg_marquardt::LeastSquaresProblem;
-    let data = BinnedDensity::from_profile(doc, Order::Multi);
+    let data = BinnedDensity::from_profile(doc, Order::Multi, Observable::Exitance);
     let (m, rep) = fit_mixture("export", &data, k, 1, &FitOptions::default())?;
     let theta: Vec<f64> =
         m.a.iter()
@@ -220,15 +231,20 @@ pub fn markdown_table(rows: &[AccuracyRow]) -> String {
         "| α | R_d sim | R_d model | rel. err | radial L2 model | radial L2 C–B | radial L2 MC noise |\n|---|---|---|---|---|---|---|\n",
     );
     for r in rows {
+        // No Christensen–Burley profile exists of the normal radiance.
+        let burley = if r.radial_l2_burley.is_nan() {
+            "—".to_string()
+        } else {
+            format!("{:.4}", r.radial_l2_burley)
+        };
         s += &format!(
-            "| {:.6} | {:.5} ± {:.5} | {:.5} | {:+.3} % | {:.4} | {:.4} | {:.4} |\n",
+            "| {:.6} | {:.5} ± {:.5} | {:.5} | {:+.3} % | {:.4} | {burley} | {:.4} |\n",
             r.alpha,
             r.rd_sim,
             r.rd_sim_stderr,
             r.rd_model,
             100.0 * r.rd_rel_err,
             r.radial_l2_model,
-            r.radial_l2_burley,
             r.radial_l2_noise
         );
     }
@@ -251,11 +267,14 @@ fn plots(model: &BasisModel, docs: &[ProfileDoc], rows: &[AccuracyRow], dir: &Pa
     for (c, d) in picks.iter().enumerate() {
         let a = d.config.medium.alpha;
         let b = &d.bins;
-        let total: Vec<f64> = b.p_1.iter().zip(&b.p_m).map(|(x, y)| x + y).collect();
-        let err: Vec<f64> = b
+        let Some(o) = d.observed(model.observable) else {
+            continue;
+        };
+        let total: Vec<f64> = o.p_1.iter().zip(o.p_m).map(|(x, y)| x + y).collect();
+        let err: Vec<f64> = o
             .p_1_stderr
             .iter()
-            .zip(&b.p_m_stderr)
+            .zip(o.p_m_stderr)
             .map(|(x, y)| (x * x + y * y).sqrt())
             .collect();
         let (pts, e) = ring_points(&b.edges, &total, &err);

@@ -26,7 +26,6 @@ use super::output;
 use crate::error::{Error, Result};
 use crate::forward::runner::{RunOptions, Shard, chunk_range, run};
 use crate::jobs::shipped::Models;
-use crate::metamodel::basis::BasisModel;
 use crate::provenance::Provenance;
 use crate::render::analysis::analyse;
 use crate::render::estimator::{self, Image, Sampling, Settings, View};
@@ -379,11 +378,19 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
     let needs_model = targets.iter().any(|t| matches!(t, Target::Model(_)));
     let basis = if needs_model {
         let m = &opts.models;
-        let (model, path): (&BasisModel, &Path) = match scene.light {
-            LightKind::Collimated => (&m.basis, &m.basis_origin),
-            LightKind::Diffuse => (&m.basis_diffuse, &m.basis_diffuse_origin),
-        };
         let want = scene.light.incidence();
+        let (model, path) = m.basis_for(want, scene.observable);
+        if model.observable != scene.observable {
+            return Err(Error::format(
+                path,
+                "observable",
+                format!(
+                    "'{}', but the scene renders the {}",
+                    model.observable.name(),
+                    scene.observable.name()
+                ),
+            ));
+        }
         if model.incidence != want {
             return Err(Error::format(
                 path,

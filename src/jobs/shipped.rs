@@ -1,11 +1,13 @@
 //! What is built into the binary, so every command works from any folder
 //! and after `cargo install`: the basis BSSRDF models (pencil and diffuse
-//! incidence), the kernel meta-model, the configuration of the tallies the
+//! incidence, each of the exitance and of the radiance along the normal),
+//! the kernel meta-model, the configuration of the tallies the
 //! meta-model was trained on, and the canonical scenes.
 //!
 //! A model is found in this order: the file given by the caller (a
 //! command-line flag), the file named by the environment variable
-//! (`SVKERNEL_BASIS`, `SVKERNEL_BASIS_DIFFUSE`, `SVKERNEL_MODEL`), else the
+//! (`SVKERNEL_BASIS`, `SVKERNEL_BASIS_DIFFUSE`, `SVKERNEL_BASIS_RADIANCE`,
+//! `SVKERNEL_BASIS_RADIANCE_DIFFUSE`, `SVKERNEL_MODEL`), else the
 //! built-in copy (the same bytes as `data/profiles/*.json`). The cache of
 //! meta-model extensions is `--cache`, else `SVKERNEL_CACHE`, else the
 //! platform's cache folder ([`dirs::cache_dir`]) + `svkernel`.
@@ -25,6 +27,9 @@ pub enum Shipped {
     Basis,
     /// The basis BSSRDF fitted to diffuse-incidence profiles.
     BasisDiffuse,
+    /// The bases of the radiance along the normal (pencil, diffuse).
+    BasisRadiance,
+    BasisRadianceDiffuse,
     /// The kernel meta-model.
     Meta,
 }
@@ -35,6 +40,8 @@ impl Shipped {
         match self {
             Shipped::Basis => "SVKERNEL_BASIS",
             Shipped::BasisDiffuse => "SVKERNEL_BASIS_DIFFUSE",
+            Shipped::BasisRadiance => "SVKERNEL_BASIS_RADIANCE",
+            Shipped::BasisRadianceDiffuse => "SVKERNEL_BASIS_RADIANCE_DIFFUSE",
             Shipped::Meta => "SVKERNEL_MODEL",
         }
     }
@@ -44,6 +51,10 @@ impl Shipped {
         match self {
             Shipped::Basis => include_str!("../../data/profiles/basis.json"),
             Shipped::BasisDiffuse => include_str!("../../data/profiles/basis_diffuse.json"),
+            Shipped::BasisRadiance => include_str!("../../data/profiles/basis_radiance.json"),
+            Shipped::BasisRadianceDiffuse => {
+                include_str!("../../data/profiles/basis_radiance_diffuse.json")
+            }
             Shipped::Meta => include_str!("../../data/profiles/metamodel.json"),
         }
     }
@@ -53,6 +64,8 @@ impl Shipped {
         PathBuf::from(match self {
             Shipped::Basis => "(built-in basis.json)",
             Shipped::BasisDiffuse => "(built-in basis_diffuse.json)",
+            Shipped::BasisRadiance => "(built-in basis_radiance.json)",
+            Shipped::BasisRadianceDiffuse => "(built-in basis_radiance_diffuse.json)",
             Shipped::Meta => "(built-in metamodel.json)",
         })
     }
@@ -112,6 +125,9 @@ pub struct Models {
     /// Basis BSSRDF for diffuse lights.
     pub basis_diffuse: Arc<BasisModel>,
     pub basis_diffuse_origin: PathBuf,
+    /// Bases of the radiance along the normal: collimated and diffuse
+    /// lights, each with where it came from.
+    pub basis_radiance: [(Arc<BasisModel>, PathBuf); 2],
     /// The kernel meta-model (`learned`).
     pub meta: Arc<MetaModelFile>,
     pub meta_origin: PathBuf,
@@ -127,29 +143,35 @@ impl Models {
             Ok((crate::doc::from_json(s.text(), &o)?, o))
         }
         Ok(Models::from_parts(
-            builtin(Shipped::Basis)?,
-            builtin(Shipped::BasisDiffuse)?,
+            [
+                builtin(Shipped::Basis)?,
+                builtin(Shipped::BasisDiffuse)?,
+                builtin(Shipped::BasisRadiance)?,
+                builtin(Shipped::BasisRadianceDiffuse)?,
+            ],
             builtin(Shipped::Meta)?,
         ))
     }
 
     /// Each model from its file if given, else its environment variable,
     /// else the built-in copy.
-    pub fn find(
-        basis: Option<&Path>,
-        basis_diffuse: Option<&Path>,
-        meta: Option<&Path>,
-    ) -> Result<Models> {
+    /// The bases are, in order, of the exitance under collimated and
+    /// diffuse lights and of the radiance along the normal under the same.
+    pub fn find(bases: [Option<&Path>; 4], meta: Option<&Path>) -> Result<Models> {
+        let [b, d, r, rd] = bases;
         Ok(Models::from_parts(
-            Shipped::Basis.load(basis)?,
-            Shipped::BasisDiffuse.load(basis_diffuse)?,
+            [
+                Shipped::Basis.load(b)?,
+                Shipped::BasisDiffuse.load(d)?,
+                Shipped::BasisRadiance.load(r)?,
+                Shipped::BasisRadianceDiffuse.load(rd)?,
+            ],
             Shipped::Meta.load(meta)?,
         ))
     }
 
     fn from_parts(
-        (b, bo): (BasisModel, PathBuf),
-        (d, dox): (BasisModel, PathBuf),
+        [(b, bo), (d, dox), (r, ro), (rd, rdo)]: [(BasisModel, PathBuf); 4],
         (m, mo): (MetaModelFile, PathBuf),
     ) -> Models {
         Models {
@@ -157,9 +179,29 @@ impl Models {
             basis_origin: bo,
             basis_diffuse: Arc::new(d),
             basis_diffuse_origin: dox,
+            basis_radiance: [(Arc::new(r), ro), (Arc::new(rd), rdo)],
             meta: Arc::new(m),
             meta_origin: mo,
             training: training_config(),
+        }
+    }
+
+    /// The basis of `incidence` and `observable`, and where it came from.
+    pub fn basis_for(
+        &self,
+        incidence: crate::forward::medium::Incidence,
+        observable: crate::forward::medium::Observable,
+    ) -> (&Arc<BasisModel>, &Path) {
+        use crate::forward::medium::{Incidence, Observable};
+        match (observable, incidence) {
+            (Observable::Exitance, Incidence::Pencil) => (&self.basis, &self.basis_origin),
+            (Observable::Exitance, Incidence::Diffuse) => {
+                (&self.basis_diffuse, &self.basis_diffuse_origin)
+            }
+            (Observable::Radiance, i) => {
+                let (b, o) = &self.basis_radiance[usize::from(i == Incidence::Diffuse)];
+                (b, o)
+            }
         }
     }
 
@@ -230,10 +272,13 @@ mod tests {
             serde_json::to_value(&*m.basis).unwrap(),
             serde_json::to_value(&on_disk).unwrap()
         );
-        assert_eq!(
-            m.basis_diffuse.incidence,
-            crate::forward::medium::Incidence::Diffuse
-        );
+        use crate::forward::medium::{Incidence, Observable};
+        for i in [Incidence::Pencil, Incidence::Diffuse] {
+            for o in [Observable::Exitance, Observable::Radiance] {
+                let (b, _) = m.basis_for(i, o);
+                assert_eq!((b.incidence, b.observable), (i, o));
+            }
+        }
         assert!(m.meta.all.alpha_range[0] < m.meta.all.alpha_range[1]);
     }
 

@@ -227,6 +227,10 @@ pub struct BasisModel {
     pub g: f64,
     /// "pencil" (normal incidence) or "diffuse".
     pub incidence: crate::forward::medium::Incidence,
+    /// "exitance" (the profile R(r)) or "radiance" (the radiance leaving
+    /// along the normal, L(r) in 1/(MFP²·sr); p(r) = 2πr·L(r)).
+    #[serde(default)]
+    pub observable: crate::forward::medium::Observable,
     /// Polynomial degree in the albedo coordinate.
     pub degree: usize,
     /// a_kj: K rows of degree + 1 Chebyshev coefficients of ln(A_k/α²).

@@ -42,15 +42,15 @@
 //! group values v, n_s − 1 in the denominator).
 //!
 //! # Radiance along the normal
-//! For [`Observable::Radiance`] the model's exitance is converted with the
-//! internal-isotropy assumption of diffusion-based BSSRDFs (Jensen et al.
-//! 2001): L(n) = M·T(1)/(η²·2π∫₀¹T(μ)μ dμ), T(μ) = 1 − F(μ) leaving the
-//! medium ([`normal_radiance_factor`]); the reference measures L exactly.
+//! For [`Observable::Radiance`] the same integral is taken with S the
+//! radiance leaving x_e along the normal per unit power entering at x_i
+//! (1/(MFP²·sr)): the SV-BSSRDF is built on the basis of that observable
+//! ([`crate::metamodel::basis::BasisModel::observable`]), fitted to
+//! simulated radiance profiles, so nothing is converted.
 
 use super::scene::Observable;
 use super::svbssrdf::{R_MIN, Scratch, SvBssrdf};
 use crate::fastmath::exp4;
-use crate::forward::fresnel::fresnel_dielectric;
 use crate::forward::rng::PathRng;
 use crate::forward::sampling::sample_disk_concentric;
 use rayon::prelude::*;
@@ -422,30 +422,16 @@ impl RadialSampler {
     }
 }
 
-/// T(1)/(η²·2π∫₀¹T(μ)μ dμ) (1/sr): normal radiance per unit exitance under
-/// internal isotropy (module docs); 1/π at η = 1.
-pub fn normal_radiance_factor(eta: f64) -> f64 {
-    let inv = 1.0 / eta;
-    let n = 4000;
-    let integral: f64 = (0..n)
-        .map(|k| {
-            let mu = (k as f64 + 0.5) / n as f64;
-            (1.0 - fresnel_dielectric(mu, inv)) * mu
-        })
-        .sum::<f64>()
-        / n as f64;
-    (1.0 - fresnel_dielectric(1.0, inv)) / (eta * eta * 2.0 * PI * integral)
-}
-
 /// Renders `sv` over `view` (module docs). Deterministic for any thread count.
 pub fn render(sv: &SvBssrdf, view: &View, settings: &Settings) -> Image {
     let n = view.resolution;
     let channels = sv.channels();
-    let scale = view.irradiance
-        * match settings.observable {
-            Observable::Exitance => 1.0,
-            Observable::Radiance => normal_radiance_factor(sv.basis().eta),
-        };
+    assert_eq!(
+        settings.observable,
+        sv.basis().observable,
+        "a basis of one observable renders that observable"
+    );
+    let scale = view.irradiance;
     let pixels: Vec<Vec<(f64, f64)>> = (0..n * n)
         .into_par_iter()
         .map_init(Scratch::default, |scratch, p| {
@@ -717,13 +703,6 @@ mod tests {
                 assert_eq!(v.pixel_of(c[0] + 0.5 * h, c[1] + 0.5 * h), Some((i, j)));
             }
         }
-    }
-
-    #[test]
-    fn radiance_factor_is_lambertian_without_a_boundary() {
-        assert!((normal_radiance_factor(1.0) - 1.0 / PI).abs() < 1e-9);
-        let f = normal_radiance_factor(1.5);
-        assert!(f > 0.0 && f.is_finite());
     }
 
     #[test]

@@ -38,13 +38,12 @@
 use super::estimator::{Image, View};
 use super::scene::{LightKind, Observable};
 use crate::error::{Error, Result};
-use crate::forward::fresnel::fresnel_dielectric;
 use crate::forward::maps::{AlbedoMap, DensityMap, MajorantGrid, TexelMap, steps_per_collision};
 use crate::forward::medium::{Medium, Source};
 use crate::forward::rng::PathRng;
 use crate::forward::runner::{Tally, chunk_paths};
 use crate::forward::sampling::hg_pdf;
-use crate::forward::walk::{Fate, entry_weight, launch, walk_grid};
+use crate::forward::walk::{Fate, entry_weight, launch, normal_exit_factor, walk_grid};
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
 
@@ -289,8 +288,7 @@ impl Reference {
         let radiance = self.observable == Observable::Radiance;
         let g = self.medium.g;
         // T(1)/η²: radiance across the interface along the normal.
-        let t_normal = (1.0 - fresnel_dielectric(1.0, 1.0 / self.medium.eta))
-            / (self.medium.eta * self.medium.eta);
+        let t_normal = normal_exit_factor(self.medium.eta);
         let mut contrib: Vec<(usize, f64)> = Vec::new();
         for (ch, albedo) in self.albedo.iter().enumerate() {
             for path in first..first + count {

@@ -32,15 +32,7 @@ impl LightKind {
     }
 }
 
-/// What the image holds.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Observable {
-    /// Radiant exitance M(x, y) per unit incident irradiance.
-    Exitance,
-    /// Radiance leaving along the normal.
-    Radiance,
-}
+pub use crate::forward::medium::Observable;
 
 /// A loaded, validated scene.
 #[derive(Clone, Debug)]

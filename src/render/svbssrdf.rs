@@ -5,7 +5,9 @@
 //! # Units and what S is
 //! S(x_i, x_e) is the radiant exitance at x_e per unit power entering at
 //! x_i (1/MFP²), entry Fresnel loss included (the basis profiles are per
-//! incident power). For a homogeneous medium of albedo α and density ρ,
+//! incident power); on a basis of the radiance along the normal
+//! ([`BasisModel::observable`]) it is that radiance (1/(MFP²·sr)), and every
+//! formula below holds with R read as that basis' profile. For a homogeneous medium of albedo α and density ρ,
 //! S = R(r; α, ρ) = ρ²·R(ρr; α, 1): every length scales by 1/ρ, so the
 //! exitance picks up the area Jacobian ρ². R(r; α, 1) = α·R₁(r; 1) + Rₘ(r; α)
 //! with R₁(r; 1) = p₁(r)/(2πr) and Rₘ(r; α) = Σ_k A_k(α)/(2π)·e^{−B_k r}
@@ -31,7 +33,8 @@
 //!
 //! `manual` and `learned` use the split form (docs/design.md §4): α₁ = α_i (under
 //! collimated normal incidence the single-scattering vertex lies straight
-//! below x_i), α_t = Σ_k w_k (G_σk ∗ ρα)(μ_k)/Σ_k w_k (G_σk ∗ ρ)(μ_k) and
+//! below x_i; for the radiance along the normal it also lies straight above
+//! x_e, so that term is a point at x_i = x_e), α_t = Σ_k w_k (G_σk ∗ ρα)(μ_k)/Σ_k w_k (G_σk ∗ ρ)(μ_k) and
 //! ρ̄ = Σ_k w_k (G_σk ∗ ρ)(μ_k) from Gaussian pyramids ([`super::pyramid`]),
 //! with the kernel evaluated at (d, α₀ = (α_i + α_e)/2, ρ₀) and placed in the
 //! pair frame (t along x_i → x_e). The ratio α_iα_e/α_t² multiplies
@@ -43,7 +46,9 @@
 //! * `plain`: α_t = Σ w_k (G ∗ α)(μ_k) (not density-scaled; ρ̄ as above);
 //! * `vertex_kernels` (the default): α_i and α_e of the multiple-scattering
 //!   term are aggregated under the first- and last-vertex kernels instead of
-//!   read at the points (off: `--point-albedos`);
+//!   read at the points (off: `--point-albedos`). For the radiance along the
+//!   normal α_e stays the point value: the vertex that sends light straight
+//!   up through x_e lies straight below it;
 //! * `two_pass`: the kernel is evaluated again at α₀ = α_t and ρ₀ = ρ̄, and
 //!   α_t, ρ̄ recomputed.
 //!
@@ -54,6 +59,7 @@
 use crate::error::{Error, Result};
 use crate::fastmath::exp4;
 use crate::forward::maps::TexelMap;
+use crate::forward::medium::Observable;
 use crate::metamodel::basis::{BasisModel, ExpMixture, albedo_coordinate};
 use crate::metamodel::kernel::{Component, Gmm};
 use crate::metamodel::meta::MetaModelFile;
@@ -197,8 +203,10 @@ pub struct BasisTable {
     single: ExpMixture,
     /// ln A of the single-scattering components.
     single_ln_a: Vec<f64>,
-    /// The model's η (for the radiance conversion).
+    /// The model's η.
     pub eta: f64,
+    /// The observable the basis is a profile of.
+    pub observable: Observable,
 }
 
 impl BasisTable {
@@ -219,6 +227,7 @@ impl BasisTable {
             single_ln_a: model.single.a.iter().map(|a| a.ln()).collect(),
             single: model.single.clone(),
             eta: model.eta,
+            observable: model.observable,
         }
     }
 
@@ -632,6 +641,7 @@ impl SvBssrdf {
         };
         let frame = Frame { xi, axis };
         let a0 = 0.5 * (ai + ae);
+        let b = &*self.basis;
         // The vertex kernels (learned only) are queried at the same (d, α₀,
         // ρ₀) as the first all-vertex kernel: all of them are evaluated
         // before any aggregation, so that their independent chains overlap.
@@ -644,23 +654,28 @@ impl SvBssrdf {
             if let Some(first) = &meta.first {
                 first.eval_into(d, a0, rho0, &mut scratch.first);
             }
-            meta.last.eval_into(d, a0, rho0, &mut scratch.last);
+            if b.observable == Observable::Exitance {
+                meta.last.eval_into(d, a0, rho0, &mut scratch.last);
+            }
         }
         let (mut alpha_t, mut rho_bar) = self.aggregate(c, &frame, &scratch.kernel);
         // A point vertex kernel (manual's both; learned's first under normal
-        // incidence, `first: None`) aggregates to the point albedo in hand.
+        // incidence, `first: None`; the last for the radiance along the
+        // normal, whose last vertex lies straight below x_e) aggregates to
+        // the point albedo in hand.
         let (mut li, mut le) = (ai, ae);
         if let Some(meta) = vertex {
             if meta.first.is_some() {
                 li = self.aggregate(c, &frame, &scratch.first).0;
             }
-            le = self.aggregate(c, &frame, &scratch.last).0;
+            if b.observable == Observable::Exitance {
+                le = self.aggregate(c, &frame, &scratch.last).0;
+            }
         }
         if self.variant.two_pass {
             self.all_kernel(d, alpha_t, rho_bar, &mut scratch.kernel);
             (alpha_t, rho_bar) = self.aggregate(c, &frame, &scratch.kernel);
         }
-        let b = &*self.basis;
         let (single, multi) = b.parts(d.max(R_MIN) * rho_bar, alpha_t);
         rho_bar * rho_bar * (ai * single + li * le * multi)
     }
