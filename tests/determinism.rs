@@ -117,6 +117,7 @@ fn shipped_profiles_reproduce_bitwise() {
         "eta1.5_g0.3_pencil/a0.295062.json",
         "eta1.5_g0.3_pencil/a0.903087.json",
         "eta1.5_g0.3_diffuse/a0.295062.json",
+        "eta1.5_g0.3_pencil_radiance/a0.295062.json",
     ] {
         let doc = ProfileDoc::load(&root.join(file)).unwrap();
         assert_eq!(doc.shard, None, "{file}");
