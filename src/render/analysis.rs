@@ -162,9 +162,13 @@ pub fn analyse(scene: &Scene, skip: bool) -> Plan {
         scene.light.name(),
         scene.light_radius
     );
+    let observable = match scene.observable {
+        crate::forward::medium::Observable::Exitance => "",
+        crate::forward::medium::Observable::Radiance => ", of the radiance along the normal,",
+    };
     let basis = |kind: Incidence, name: &str| {
         if incidence == kind {
-            format!("{light}: only the {name} basis is loaded")
+            format!("{light}: only the {name} basis{observable} is loaded")
         } else {
             format!("{light}: the {name} basis is not loaded")
         }

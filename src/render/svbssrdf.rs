@@ -677,7 +677,13 @@ impl SvBssrdf {
             (alpha_t, rho_bar) = self.aggregate(c, &frame, &scratch.kernel);
         }
         let (single, multi) = b.parts(d.max(R_MIN) * rho_bar, alpha_t);
-        rho_bar * rho_bar * (ai * single + li * le * multi)
+        // The single-scattering vertex: below x_i under normal incidence;
+        // for the radiance along the normal below x_e under any light.
+        let a1 = match b.observable {
+            Observable::Exitance => ai,
+            Observable::Radiance => ae,
+        };
+        rho_bar * rho_bar * (a1 * single + li * le * multi)
     }
 
     /// The all-vertex kernel at (d, α₀, ρ₀) in physical MFP, into `out`:
