@@ -33,8 +33,9 @@
 //!
 //! `manual` and `learned` use the split form (docs/design.md §4): α₁ = α_i (under
 //! collimated normal incidence the single-scattering vertex lies straight
-//! below x_i; for the radiance along the normal it also lies straight above
-//! x_e, so that term is a point at x_i = x_e), α_t = Σ_k w_k (G_σk ∗ ρα)(μ_k)/Σ_k w_k (G_σk ∗ ρ)(μ_k) and
+//! below x_i; for the radiance along the normal α₁ = α_e, since the vertex
+//! that sends light straight up through x_e lies straight below it under
+//! any light), α_t = Σ_k w_k (G_σk ∗ ρα)(μ_k)/Σ_k w_k (G_σk ∗ ρ)(μ_k) and
 //! ρ̄ = Σ_k w_k (G_σk ∗ ρ)(μ_k) from Gaussian pyramids ([`super::pyramid`]),
 //! with the kernel evaluated at (d, α₀ = (α_i + α_e)/2, ρ₀) and placed in the
 //! pair frame (t along x_i → x_e). The ratio α_iα_e/α_t² multiplies
