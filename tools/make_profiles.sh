@@ -29,7 +29,7 @@ radiance_args=()
 run() {  # albedo paths seed
   local f="$out/a$1.json" paths=$2
   [ -n "${SHARD:-}" ] && f="$out/a$1.shard${SHARD/\//of}.json"
-  [ -n "$radiance" ] && paths=$(python3 -c "print(f'{float(\"$2\") / 4:.4g}')")
+  [ -n "$radiance" ] && paths=$(awk -v p="$2" 'BEGIN { printf "%.4g", p / 4 }')
   ./target/release/svkernel simulate profile --albedo "$1" --eta 1.5 --g 0.3 \
     --source "$source" --paths "$paths" --seed "$3" "${radiance_args[@]}" "${shard_args[@]}" \
     --resume --out "$f" | sed -n 1p

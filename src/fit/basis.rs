@@ -354,9 +354,7 @@ pub fn fit_basis(
              sources (pencil, or diffuse at a point)"
         )));
     }
-    if observable == Observable::Radiance
-        && let Some(d) = docs.iter().find(|d| d.bins.l_m.is_empty())
-    {
+    if let Some(d) = docs.iter().find(|d| d.observed(observable).is_none()) {
         return Err(bad(format!(
             "profile at α = {} holds no radiance tally (simulate it with --radiance)",
             d.config.medium.alpha

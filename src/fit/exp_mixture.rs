@@ -42,20 +42,21 @@ pub enum Order {
 impl BinnedDensity {
     /// The rings of `doc` (inner disk included, overflow excluded) of the
     /// exitance (`p_1`, `p_m`) or of the radiance along the normal (`l_1`,
-    /// `l_m`, which the document must hold), and the tail bin [r_max, ∞)
-    /// with the energy beyond r_max. A ring with no count gets the standard
-    /// error of one count (of one path's largest next-event contribution,
-    /// f_HG(1)·T(1)/η², for radiance), so empty bins pull the model toward
-    /// zero without infinite weight.
+    /// `l_m`), and the tail bin [r_max, ∞) with the energy beyond r_max. A
+    /// ring with no count gets the standard error of one count (of one
+    /// path's largest next-event contribution, f_HG(1)·T(1)/η², for
+    /// radiance), so empty bins pull the model toward zero without infinite
+    /// weight. Panics if `doc` does not hold `observable`
+    /// ([`ProfileDoc::observed`]; [`crate::fit::basis::fit_basis`] checks).
     pub fn from_profile(doc: &ProfileDoc, order: Order, observable: Observable) -> Self {
-        let b = &doc.bins;
-        let (y, s) = match (observable, order) {
-            (Observable::Exitance, Order::Single) => (&b.p_1, &b.p_1_stderr),
-            (Observable::Exitance, Order::Multi) => (&b.p_m, &b.p_m_stderr),
-            (Observable::Radiance, Order::Single) => (&b.l_1, &b.l_1_stderr),
-            (Observable::Radiance, Order::Multi) => (&b.l_m, &b.l_m_stderr),
+        let o = doc
+            .observed(observable)
+            .expect("a profile holding the observable");
+        let (y, s) = match order {
+            Order::Single => (o.p_1, o.p_1_stderr),
+            Order::Multi => (o.p_m, o.p_m_stderr),
         };
-        let m = &doc.config.medium;
+        let (b, m) = (&doc.bins, &doc.config.medium);
         let weight = crate::forward::walk::entry_weight(&doc.config.source, m.eta);
         let power = doc.config.source.power();
         let n = doc.paths.max(1) as f64;
@@ -80,9 +81,14 @@ impl BinnedDensity {
             out.y.push(y[k]);
             out.sigma.push(s[k].max(one_count));
         }
-        // The tail bin [r_max, ∞): its energy from the overflow bin.
-        let tail = match observable {
-            Observable::Exitance => {
+        // The tail bin [r_max, ∞): its energy from the overflow bin, as a
+        // fraction of the incident power.
+        let tail = match (observable, &doc.radiance) {
+            (Observable::Radiance, Some(r)) => match order {
+                Order::Single => r.overflow.0,
+                Order::Multi => r.overflow.1,
+            },
+            _ => {
                 let counts = match order {
                     Order::Single => &doc.tally.exit_single,
                     Order::Multi => &doc.tally.exit_multi,
@@ -91,25 +97,17 @@ impl BinnedDensity {
                     paths: doc.tally.paths,
                     weight,
                 };
-                norm.fraction(*counts.last().unwrap_or(&0))
-            }
-            Observable::Radiance => {
-                let over = doc.radiance.as_ref().map(|r| &r.overflow);
-                let e = over.map(|o| if order == Order::Single { o.0 } else { o.1 });
-                let e = e.unwrap_or(crate::forward::tally::Estimate {
-                    value: 0.0,
-                    stderr: 0.0,
-                });
+                let f = norm.fraction(*counts.last().unwrap_or(&0));
                 crate::forward::tally::Estimate {
-                    value: e.value / power,
-                    stderr: e.stderr / power,
+                    value: power * f.value,
+                    stderr: power * f.stderr,
                 }
             }
         };
         out.lo.push(*b.edges.last().unwrap_or(&0.0));
         out.hi.push(f64::INFINITY);
-        out.y.push(power * tail.value);
-        out.sigma.push(power * tail.stderr.max(unit * weight / n));
+        out.y.push(tail.value);
+        out.sigma.push(tail.stderr.max(unit * power * weight / n));
         out
     }
 

@@ -258,7 +258,7 @@ impl RadianceTally {
     }
 
     /// Adds one path's contributions, `(bin, q, order ≥ 2)` per scattering
-    /// vertex in any order; `scratch` is reused between paths.
+    /// vertex in any order (sorted in place).
     pub fn add_path(&mut self, contrib: &mut [(usize, u128, bool)]) {
         contrib.sort_unstable_by_key(|c| (c.2, c.0));
         let mut totals = [0u128; 2];

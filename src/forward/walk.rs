@@ -38,7 +38,7 @@ use super::rng::{PathRng, threshold_u32, unit_f64, unit_open0_f64};
 use super::sampling::{
     Vec3, hg_pdf, rotate_direction, sample_cosine_cos_theta, sample_disk_concentric, sample_hg_cos,
 };
-use super::tally::{BinLookup, ProfileTally, RADIANCE_Q};
+use super::tally::{BinLookup, ProfileTally, RADIANCE_Q, RadianceTally};
 use std::f64::consts::PI;
 
 /// A path inside the medium, right after entry.
@@ -648,6 +648,15 @@ pub fn record(tally: &mut ProfileTally, bins: &BinLookup, fate: Fate, events: u3
     }
 }
 
+/// T(1)/η² (unitless): the radiance leaving along the normal per unit
+/// radiance arriving at the surface along the normal from inside, with
+/// T(1) = 1 − F(1) the normal Fresnel transmittance and 1/η² the change of
+/// radiance across the interface (L/n² is invariant; Pharr et al., pbrt-v4
+/// §11.2, "non-symmetric scattering and refraction").
+pub fn normal_exit_factor(eta: f64) -> f64 {
+    (1.0 - fresnel_dielectric(1.0, 1.0 / eta)) / (eta * eta)
+}
+
 /// Simulates paths `first..first + count` of the stream family `seed` with the
 /// scalar walk and tallies them.
 pub fn simulate_scalar(
@@ -659,28 +668,7 @@ pub fn simulate_scalar(
     first: u64,
     count: u64,
 ) -> ProfileTally {
-    let mut tally = ProfileTally::new(bins.bins());
-    for path in first..first + count {
-        tally.paths += 1;
-        let mut rng = PathRng::new(seed, path);
-        match launch(source, medium.eta, &mut rng) {
-            None => tally.specular += 1,
-            Some(start) => {
-                let (fate, n) = walk(medium, max_events, start, &mut rng);
-                record(&mut tally, bins, fate, n);
-            }
-        }
-    }
-    tally
-}
-
-/// T(1)/η² (unitless): the radiance leaving along the normal per unit
-/// radiance arriving at the surface along the normal from inside, with
-/// T(1) = 1 − F(1) the normal Fresnel transmittance and 1/η² the change of
-/// radiance across the interface (L/n² is invariant; Pharr et al., pbrt-v4
-/// §11.2, "non-symmetric scattering and refraction").
-pub fn normal_exit_factor(eta: f64) -> f64 {
-    (1.0 - fresnel_dielectric(1.0, 1.0 / eta)) / (eta * eta)
+    scalar_chunk(medium, source, bins, max_events, seed, first, count, false)
 }
 
 /// [`simulate_scalar`] that also tallies the radiance along the normal by
@@ -701,7 +689,24 @@ pub fn simulate_scalar_radiance(
     first: u64,
     count: u64,
 ) -> ProfileTally {
-    let mut tally = ProfileTally::with_radiance(bins.bins());
+    scalar_chunk(medium, source, bins, max_events, seed, first, count, true)
+}
+
+/// The scalar walk over paths `first..first + count`, with the next-event
+/// radiance tally when `radiance` is set (no vertex visit otherwise).
+#[allow(clippy::too_many_arguments)]
+fn scalar_chunk(
+    medium: &Medium,
+    source: &Source,
+    bins: &BinLookup,
+    max_events: u32,
+    seed: u64,
+    first: u64,
+    count: u64,
+    radiance: bool,
+) -> ProfileTally {
+    let mut tally = ProfileTally::new(bins.bins());
+    let mut nee = radiance.then(|| RadianceTally::new(bins.bins()));
     let albedo = UniformAlbedo(threshold_u32(medium.alpha));
     let exit = normal_exit_factor(medium.eta);
     let (g, sigma_t) = (medium.g, medium.sigma_t());
@@ -709,9 +714,13 @@ pub fn simulate_scalar_radiance(
     for path in first..first + count {
         tally.paths += 1;
         let mut rng = PathRng::new(seed, path);
-        match launch(source, medium.eta, &mut rng) {
-            None => tally.specular += 1,
-            Some(start) => {
+        let Some(start) = launch(source, medium.eta, &mut rng) else {
+            tally.specular += 1;
+            continue;
+        };
+        let (fate, n) = match &mut nee {
+            None => walk(medium, max_events, start, &mut rng),
+            Some(nee) => {
                 contrib.clear();
                 let mut order = 0u32;
                 let visit = |v: Vec3, w: Vec3| {
@@ -720,13 +729,13 @@ pub fn simulate_scalar_radiance(
                     let bin = bins.index((v[0] * v[0] + v[1] * v[1]).sqrt());
                     contrib.push((bin, (q * RADIANCE_Q).round() as u128, order >= 2));
                 };
-                let (fate, n) = walk_general(medium, &albedo, max_events, start, &mut rng, visit);
-                record(&mut tally, bins, fate, n);
-                if let Some(r) = &mut tally.radiance {
-                    r.add_path(&mut contrib);
-                }
+                let end = walk_general(medium, &albedo, max_events, start, &mut rng, visit);
+                nee.add_path(&mut contrib);
+                end
             }
-        }
+        };
+        record(&mut tally, bins, fate, n);
     }
+    tally.radiance = nee;
     tally
 }

@@ -457,7 +457,6 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
         spp: opts.spp.unwrap_or(scene.samples),
         sampling: opts.sampling,
         seed: opts.seed,
-        observable: scene.observable,
     };
     if targets.iter().any(|t| matches!(t, Target::Model(_))) {
         settings.validate()?;

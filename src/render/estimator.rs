@@ -42,13 +42,12 @@
 //! group values v, n_s − 1 in the denominator).
 //!
 //! # Radiance along the normal
-//! For [`Observable::Radiance`] the same integral is taken with S the
+//! For [`Observable::Radiance`](crate::forward::medium::Observable) the same integral is taken with S the
 //! radiance leaving x_e along the normal per unit power entering at x_i
 //! (1/(MFP²·sr)): the SV-BSSRDF is built on the basis of that observable
 //! ([`crate::metamodel::basis::BasisModel::observable`]), fitted to
 //! simulated radiance profiles, so nothing is converted.
 
-use super::scene::Observable;
 use super::svbssrdf::{R_MIN, Scratch, SvBssrdf};
 use crate::fastmath::exp4;
 use crate::forward::rng::PathRng;
@@ -171,7 +170,6 @@ pub struct Settings {
     pub spp: u32,
     pub sampling: Sampling,
     pub seed: u64,
-    pub observable: Observable,
 }
 
 impl Settings {
@@ -426,11 +424,6 @@ impl RadialSampler {
 pub fn render(sv: &SvBssrdf, view: &View, settings: &Settings) -> Image {
     let n = view.resolution;
     let channels = sv.channels();
-    assert_eq!(
-        settings.observable,
-        sv.basis().observable,
-        "a basis of one observable renders that observable"
-    );
     let scale = view.irradiance;
     let pixels: Vec<Vec<(f64, f64)>> = (0..n * n)
         .into_par_iter()
@@ -661,7 +654,6 @@ mod tests {
                     spp: 4096,
                     sampling,
                     seed: 3,
-                    observable: Observable::Exitance,
                 };
                 let img = render(&sv, &view, &settings);
                 for (&(i, j), quad) in pixels.iter().zip(&quads) {
