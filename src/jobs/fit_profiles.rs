@@ -335,12 +335,17 @@ fn plots(model: &BasisModel, docs: &[ProfileDoc], rows: &[AccuracyRow], dir: &Pa
         &resid,
     )?;
     let alphas: Vec<f64> = (0..=400).map(|i| i as f64 / 400.0).collect();
+    // The total the profile integrates to: R_d, or ∫L dA of the radiance.
+    let total = match model.observable {
+        Observable::Exitance => "R_d",
+        Observable::Radiance => "∫L dA",
+    };
     chart(
         &dir.join("rd.png"),
         &ax(
-            "R_d(α): smooth model vs simulation",
+            &format!("{total}(α): smooth model vs simulation"),
             "α",
-            "R_d",
+            total,
             false,
             false,
         ),
@@ -358,33 +363,37 @@ fn plots(model: &BasisModel, docs: &[ProfileDoc], rows: &[AccuracyRow], dir: &Pa
             ),
         ],
     )?;
+    let mut errors = vec![
+        Series::points(
+            format!("{total} rel. error"),
+            rows.iter().map(|r| (r.alpha, r.rd_rel_err)).collect(),
+            Some(rows.iter().map(|r| r.rd_sim_stderr / r.rd_sim).collect()),
+            0,
+        ),
+        Series::line(
+            "radial L2 model",
+            rows.iter().map(|r| (r.alpha, r.radial_l2_model)).collect(),
+            1,
+        ),
+    ];
+    // Christensen–Burley is a profile of the exitance only.
+    if model.observable == Observable::Exitance {
+        errors.push(Series::dashed(
+            "radial L2 Christensen–Burley",
+            rows.iter().map(|r| (r.alpha, r.radial_l2_burley)).collect(),
+            2,
+        ));
+    }
     chart(
         &dir.join("rd_error.png"),
         &ax(
-            "R_d relative error (model/sim − 1) and radial L2 error",
+            &format!("{total} relative error (model/sim − 1) and radial L2 error"),
             "α",
             "",
             false,
             false,
         ),
-        &[
-            Series::points(
-                "R_d rel. error",
-                rows.iter().map(|r| (r.alpha, r.rd_rel_err)).collect(),
-                Some(rows.iter().map(|r| r.rd_sim_stderr / r.rd_sim).collect()),
-                0,
-            ),
-            Series::line(
-                "radial L2 model",
-                rows.iter().map(|r| (r.alpha, r.radial_l2_model)).collect(),
-                1,
-            ),
-            Series::dashed(
-                "radial L2 Christensen–Burley",
-                rows.iter().map(|r| (r.alpha, r.radial_l2_burley)).collect(),
-                2,
-            ),
-        ],
+        &errors,
     )?;
     let k = model.components();
     let per = |f: &dyn Fn(&ExpMixture, usize) -> f64| -> Vec<Series> {
