@@ -930,7 +930,10 @@ fn fit(f: Fit) -> Result<()> {
                     .join("basis_report")
             });
             let r = report::fit_profiles(&input, &out, &dir, components, degree, tol, observable)?;
-            println!("{}", report::markdown_table(&r.training_accuracy));
+            println!(
+                "{}",
+                report::markdown_table(&r.training_accuracy, observable)
+            );
             // The α = 1 energy law holds for the exitance only.
             let energy = match observable {
                 svkernel::forward::medium::Observable::Exitance => format!(
@@ -1077,7 +1080,10 @@ fn fit(f: Fit) -> Result<()> {
         Fit::Check { model, input, out } => {
             let (m, _): (BasisModel, _) = Shipped::Basis.load(model.as_deref())?;
             let rows = report::check(&m, &input)?;
-            println!("{}", report::markdown_table(&rows));
+            println!(
+                "{}",
+                report::markdown_table(&rows, svkernel::forward::medium::Observable::Exitance)
+            );
             if let Some(out) = out {
                 svkernel::jobs::store::write_json_atomic(&out, &rows)?;
             }

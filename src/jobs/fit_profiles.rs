@@ -225,10 +225,20 @@ pub fn check(model: &BasisModel, in_dir: &Path) -> Result<Vec<AccuracyRow>> {
     Ok(rows)
 }
 
+/// The total a profile of `observable` integrates to: R_d, or ∫L dA of the
+/// radiance along the normal.
+fn total_name(observable: Observable) -> &'static str {
+    match observable {
+        Observable::Exitance => "R_d",
+        Observable::Radiance => "∫L dA",
+    }
+}
+
 /// Markdown table of accuracy rows.
-pub fn markdown_table(rows: &[AccuracyRow]) -> String {
-    let mut s = String::from(
-        "| α | R_d sim | R_d model | rel. err | radial L2 model | radial L2 C–B | radial L2 MC noise |\n|---|---|---|---|---|---|---|\n",
+pub fn markdown_table(rows: &[AccuracyRow], observable: Observable) -> String {
+    let total = total_name(observable);
+    let mut s = format!(
+        "| α | {total} sim | {total} model | rel. err | radial L2 model | radial L2 C–B | radial L2 MC noise |\n|---|---|---|---|---|---|---|\n",
     );
     for r in rows {
         // No Christensen–Burley profile exists of the normal radiance.
@@ -335,11 +345,7 @@ fn plots(model: &BasisModel, docs: &[ProfileDoc], rows: &[AccuracyRow], dir: &Pa
         &resid,
     )?;
     let alphas: Vec<f64> = (0..=400).map(|i| i as f64 / 400.0).collect();
-    // The total the profile integrates to: R_d, or ∫L dA of the radiance.
-    let total = match model.observable {
-        Observable::Exitance => "R_d",
-        Observable::Radiance => "∫L dA",
-    };
+    let total = total_name(model.observable);
     chart(
         &dir.join("rd.png"),
         &ax(
