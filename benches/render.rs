@@ -234,7 +234,7 @@ fn walks(c: &mut Criterion) {
     // heterogeneous reference is compared with the albedos it contains.
     let homogeneous = |alpha: f64| {
         let medium = Medium::new(alpha, 0.3, 1.5, 1.0, None).expect("medium");
-        simulate_scalar(&medium, &source, &bins, 1_000_000, 1, 0, paths)
+        simulate_scalar(&medium, &source, &bins, 1_000_000, 1, 0, paths, false)
     };
     for alpha in [0.9, 0.3, 0.95] {
         g.throughput(Throughput::Elements(homogeneous(alpha).events));

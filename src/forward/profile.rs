@@ -4,7 +4,7 @@
 use super::medium::{Medium, Source};
 use super::runner::{self, RunOptions, Shard, chunk_paths, chunk_range};
 use super::tally::{BinLookup, Estimate, Normalizer, ProfileTally, RadialBins};
-use super::walk::{entry_weight, simulate_scalar, simulate_scalar_radiance as simulate_radiance};
+use super::walk::{entry_weight, simulate_scalar};
 use crate::error::{Error, Result};
 use crate::provenance::Provenance;
 use serde::{Deserialize, Serialize};
@@ -101,20 +101,23 @@ impl ProfileConfig {
     pub fn simulate_chunk(&self, c: u64, bins: &BinLookup) -> ProfileTally {
         assert_eq!(bins.bins(), &self.bins, "a lookup of other bins");
         let (first, count) = chunk_paths(self.paths, c);
-        let walk = match (self.engine, self.radiance) {
-            (Engine::Scalar, false) => simulate_scalar,
-            (Engine::Scalar, true) => simulate_radiance,
-            (Engine::Lanes, _) => super::simd::simulate_lanes,
-        };
-        walk(
-            &self.medium,
-            &self.source,
-            bins,
-            self.max_events,
-            self.seed,
-            first,
-            count,
-        )
+        let (m, src, seed) = (&self.medium, &self.source, self.seed);
+        match self.engine {
+            Engine::Scalar => simulate_scalar(
+                m,
+                src,
+                bins,
+                self.max_events,
+                seed,
+                first,
+                count,
+                self.radiance,
+            ),
+            // `validate` refuses the radiance with the lane engine.
+            Engine::Lanes => {
+                super::simd::simulate_lanes(m, src, bins, self.max_events, seed, first, count)
+            }
+        }
     }
 
     /// An empty tally of this simulation's shape.

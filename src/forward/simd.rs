@@ -920,7 +920,7 @@ mod tests {
     fn compare_engines(medium: Medium, source: Source, paths: u64, seed: u64) {
         let bins = RadialBins::default().lookup();
         let max_events = 100_000;
-        let s = simulate_scalar(&medium, &source, &bins, max_events, seed, 0, paths);
+        let s = simulate_scalar(&medium, &source, &bins, max_events, seed, 0, paths, false);
         let l = simulate_lanes(&medium, &source, &bins, max_events, seed, 0, paths);
         let ctx = format!("{medium:?} {source}");
         assert_eq!(l.paths, paths, "{ctx}");
@@ -1067,7 +1067,7 @@ mod tests {
                 let t = simulate_lanes(&medium, &source, &bins, 1000, 4, first, count);
                 assert_eq!(t.paths, count);
                 assert_eq!(t.accounted(), count);
-                let s = simulate_scalar(&medium, &source, &bins, 1000, 4, first, count);
+                let s = simulate_scalar(&medium, &source, &bins, 1000, 4, first, count, false);
                 assert_eq!(t.specular, s.specular);
             }
         }
@@ -1077,7 +1077,7 @@ mod tests {
         );
         // max_events = 0 truncates at the first scattering, as the scalar walk.
         let t = simulate_lanes(&medium, &Source::Pencil, &bins, 0, 4, 0, 1000);
-        let s = simulate_scalar(&medium, &Source::Pencil, &bins, 0, 4, 0, 1000);
+        let s = simulate_scalar(&medium, &Source::Pencil, &bins, 0, 4, 0, 1000, false);
         assert_eq!((t.truncated, t.events), (s.truncated, s.events));
         // Ranges concatenate: [0, 37) + [37, 100) == [0, 100) exactly.
         let mut a = simulate_lanes(&medium, &Source::Pencil, &bins, 1000, 4, 0, 37);

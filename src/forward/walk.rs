@@ -659,43 +659,18 @@ pub fn normal_exit_factor(eta: f64) -> f64 {
 
 /// Simulates paths `first..first + count` of the stream family `seed` with the
 /// scalar walk and tallies them.
-pub fn simulate_scalar(
-    medium: &Medium,
-    source: &Source,
-    bins: &BinLookup,
-    max_events: u32,
-    seed: u64,
-    first: u64,
-    count: u64,
-) -> ProfileTally {
-    scalar_chunk(medium, source, bins, max_events, seed, first, count, false)
-}
-
-/// [`simulate_scalar`] that also tallies the radiance along the normal by
+///
+/// With `radiance` it also tallies the radiance along the normal by
 /// next-event estimation: every scattering vertex at depth |z| with arrival
 /// direction ω adds q = f_HG(ω·ẑ)·e^{−σ_t|z|}·T(1)/η² (sr⁻¹,
 /// [`normal_exit_factor`]) to the radial bin of its horizontal distance
 /// from the source point. The vertical ray to the surface stays inside the
 /// medium, so e^{−σ_t|z|} is its exact transmittance (in a slab too). The
-/// paths, their draws and so the exit counts are those of
-/// [`simulate_scalar`] exactly. The estimator is that of the brute-force
-/// reference's radiance images ([`crate::render::reference`]).
-pub fn simulate_scalar_radiance(
-    medium: &Medium,
-    source: &Source,
-    bins: &BinLookup,
-    max_events: u32,
-    seed: u64,
-    first: u64,
-    count: u64,
-) -> ProfileTally {
-    scalar_chunk(medium, source, bins, max_events, seed, first, count, true)
-}
-
-/// The scalar walk over paths `first..first + count`, with the next-event
-/// radiance tally when `radiance` is set (no vertex visit otherwise).
+/// paths, their draws and so the exit counts are the same either way, and
+/// without it no vertex is visited. The estimator is that of the
+/// brute-force reference's radiance images ([`crate::render::reference`]).
 #[allow(clippy::too_many_arguments)]
-fn scalar_chunk(
+pub fn simulate_scalar(
     medium: &Medium,
     source: &Source,
     bins: &BinLookup,
