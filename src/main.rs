@@ -19,6 +19,7 @@ use svkernel::metamodel::meta::MetaModelFile;
 use svkernel::pair::VertexClass;
 use svkernel::provenance::Provenance;
 use svkernel::render::estimator::Sampling;
+use svkernel::render::svbssrdf::{AlbedoSpace, SPACE_BLUR};
 
 #[derive(Parser)]
 #[command(
@@ -258,10 +259,15 @@ struct RenderArgs {
     /// Kernel-method variant: a second pass with α₀ = α_t.
     #[arg(long)]
     two_pass: bool,
-    /// Kernel-method variant: aggregate ln α (the kernel-weighted geometric
-    /// mean) instead of α.
-    #[arg(long)]
-    log_albedo: bool,
+    /// Kernel-method variant: the space in which α_t averages albedo
+    /// variation coarser than --space-blur (linear: α; transport: √(1 − α);
+    /// log: ln α; absorption: ln(1 − α)); finer variation is averaged linearly.
+    #[arg(long, value_enum, default_value_t = AlbedoSpace::Transport)]
+    albedo_space: AlbedoSpace,
+    /// Kernel-method variant: the scale b (MFP) that splits fine from coarse
+    /// albedo variation for --albedo-space.
+    #[arg(long, default_value_t = SPACE_BLUR)]
+    space_blur: f64,
     /// Paths of the reference (default: the scene's `reference_paths`; 1e7 notation).
     #[arg(long, value_parser = parse_count)]
     paths: Option<u64>,
@@ -1277,7 +1283,8 @@ fn render(a: RenderArgs) -> Result<()> {
             plain: a.plain,
             vertex_kernels: !a.point_albedos,
             two_pass: a.two_pass,
-            log_albedo: a.log_albedo,
+            space: a.albedo_space,
+            space_blur: a.space_blur,
         },
         seed: a.seed,
         reference_paths: a.paths,

@@ -64,7 +64,7 @@ use crate::forward::medium::Observable;
 use crate::metamodel::basis::{BasisModel, ExpMixture, albedo_coordinate};
 use crate::metamodel::kernel::{Component, Gmm};
 use crate::metamodel::meta::MetaModelFile;
-use crate::render::pyramid::GaussianPyramid;
+use crate::render::pyramid::{self, GaussianPyramid};
 use std::f64::consts::PI;
 use std::sync::{Arc, OnceLock};
 
@@ -143,20 +143,102 @@ impl<'de> serde::Deserialize<'de> for Method {
 /// measured on the canonical scenes it cuts the learned method's relative
 /// RMSE 4–12× against point albedos (docs/measurements.md); for `manual`, whose
 /// vertex kernels are points, it changes nothing.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Variant {
     pub plain: bool,
     pub vertex_kernels: bool,
     pub two_pass: bool,
-    /// Aggregate ln α instead of α: α_t = exp(∫Kρ ln α / ∫Kρ), the
-    /// kernel-weighted geometric mean (albedos floored at
-    /// [`LOG_ALBEDO_FLOOR`]). A path's throughput is the product of its
-    /// vertices' albedos, so its logarithm is linear in the ln α it crosses.
-    pub log_albedo: bool,
+    /// The space in which α_t is averaged under the all-vertex kernel
+    /// (two-scale unless `linear`, see [`AlbedoSpace`]).
+    pub space: AlbedoSpace,
+    /// The scale b (MFP at the local density) that separates fine from
+    /// coarse albedo variation in a two-scale [`AlbedoSpace`].
+    pub space_blur: f64,
 }
 
-/// The albedo below which `log_albedo` aggregation reads the floor.
-pub const LOG_ALBEDO_FLOOR: f64 = 1e-6;
+/// The default [`Variant::space_blur`], in MFP: the value a sweep over
+/// 0.1–3 MFP on the canonical scenes picked (docs/measurements.md).
+pub const SPACE_BLUR: f64 = 0.25;
+
+/// The space in which the kernel methods average the albedo for α_t.
+///
+/// A path's throughput is the product of its vertices' albedos. Where its
+/// vertices fall independently under the kernel K, the expected product is
+/// a power of the linear mean ∫Kρα/∫Kρ; where a path stays on one side of
+/// a coarse step, the mean is a mixture over sides and the bright side
+/// weighs more. So the albedo is split at a scale b (MFP at the local
+/// density, [`Variant::space_blur`]) into ᾱ = G_b ∗ α, its density-weighted
+/// local mean, and the fine residual α − ᾱ. The fine part is averaged
+/// linearly, the coarse one in the space φ:
+///
+///   α_t = φ⁻¹(∫Kρ φ(ᾱ) / ∫Kρ) + ∫Kρ (α − ᾱ) / ∫Kρ.
+///
+/// On a texture much finer than b this is the linear mean; with b = 0 it is
+/// the mean in φ. The vertex kernels (first and last) are always averaged
+/// linearly: one vertex's expected albedo is its linear mean. Arguments of
+/// the logarithms are floored at [`SPACE_FLOOR`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, clap::ValueEnum)]
+pub enum AlbedoSpace {
+    /// φ(α) = α: the kernel-weighted arithmetic mean (b plays no part).
+    Linear,
+    /// φ(α) = ln α: the geometric mean (the logarithm of a path's
+    /// throughput is linear in the ln α it crosses).
+    Log,
+    /// φ(α) = ln(1 − α): the geometric mean of the absorption probability
+    /// per scattering, which weights bright texels more than √(1 − α) does.
+    Absorption,
+    /// φ(α) = √(1 − α): the diffusion coordinate (the effective transport
+    /// coefficient σ_tr = √(3σ_aσ_t') is ∝ √(1 − α) at fixed σ_t').
+    /// The default: measured best on the canonical and held-out scenes.
+    #[default]
+    Transport,
+}
+
+/// Density maps with at most this many distinct values get exact local
+/// means ([`pyramid::blur`] per value); others read the pyramid.
+const EXACT_DENSITY_LEVELS: usize = 16;
+
+/// The least argument of a logarithm in [`AlbedoSpace`] (α for `log`, 1 − α
+/// for `absorption`).
+pub const SPACE_FLOOR: f64 = 1e-6;
+
+impl AlbedoSpace {
+    /// Index of the space among the material's pyramid slots.
+    fn index(self) -> usize {
+        self as usize
+    }
+
+    /// φ(α).
+    pub fn forward(self, alpha: f64) -> f64 {
+        match self {
+            AlbedoSpace::Linear => alpha,
+            AlbedoSpace::Log => alpha.max(SPACE_FLOOR).ln(),
+            AlbedoSpace::Absorption => (1.0 - alpha).max(SPACE_FLOOR).ln(),
+            AlbedoSpace::Transport => (1.0 - alpha).max(0.0).sqrt(),
+        }
+    }
+
+    /// φ⁻¹(y).
+    #[inline]
+    pub fn inverse(self, y: f64) -> f64 {
+        match self {
+            AlbedoSpace::Linear => y,
+            AlbedoSpace::Log => y.exp(),
+            AlbedoSpace::Absorption => 1.0 - y.exp(),
+            AlbedoSpace::Transport => 1.0 - y * y,
+        }
+    }
+
+    /// The name on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            AlbedoSpace::Linear => "linear",
+            AlbedoSpace::Log => "log",
+            AlbedoSpace::Absorption => "absorption",
+            AlbedoSpace::Transport => "transport",
+        }
+    }
+}
 
 impl Default for Variant {
     fn default() -> Self {
@@ -164,7 +246,8 @@ impl Default for Variant {
             plain: false,
             vertex_kernels: true,
             two_pass: false,
-            log_albedo: false,
+            space: AlbedoSpace::Transport,
+            space_blur: SPACE_BLUR,
         }
     }
 }
@@ -182,8 +265,14 @@ impl Variant {
         if self.two_pass {
             s += "+2pass";
         }
-        if self.log_albedo {
-            s += "+log-albedo";
+        let d = Variant::default();
+        if self.space != d.space {
+            s += "+";
+            s += self.space.name();
+            s += "-albedo";
+        }
+        if self.space_blur != d.space_blur && self.space != AlbedoSpace::Linear {
+            s += &format!("+blur{}", self.space_blur);
         }
         s
     }
@@ -346,11 +435,33 @@ impl Density {
 /// Where the kernel methods read their aggregates.
 #[derive(Debug)]
 struct Pyramids {
-    /// G ∗ α per channel (constant density, or the `plain` variant).
-    alpha: Vec<GaussianPyramid>,
-    /// G ∗ ρα per channel and G ∗ ρ (density maps only).
-    rho_alpha: Vec<GaussianPyramid>,
+    /// Pyramids of α: the vertex kernels' aggregates, and α_t's in the
+    /// linear space.
+    linear: Aggregand,
+    /// α_t's aggregands in a two-scale [`AlbedoSpace`].
+    mapped: Option<Mapped>,
+    /// G ∗ ρ (density maps only).
     rho: Option<GaussianPyramid>,
+    /// The b of `mapped`.
+    blur: f64,
+}
+
+/// The aggregands of a two-scale [`AlbedoSpace`].
+#[derive(Debug)]
+struct Mapped {
+    /// φ(ᾱ).
+    phi: Aggregand,
+    /// α − ᾱ.
+    residual: Aggregand,
+}
+
+/// The pyramids of one aggregated quantity q (α or φ(ᾱ)).
+#[derive(Debug)]
+struct Aggregand {
+    /// G ∗ q per channel (constant density, or the `plain` variant).
+    alpha: Vec<GaussianPyramid>,
+    /// G ∗ ρq per channel (density maps only).
+    rho_alpha: Vec<GaussianPyramid>,
 }
 
 /// Per-thread scratch space of [`SvBssrdf::eval`] (no allocation per call).
@@ -370,9 +481,9 @@ pub struct Scratch {
 pub struct Material {
     albedo: Vec<TexelMap>,
     density: Density,
-    /// Pyramids of the density-scaled (`[0]`) and the plain (`[1]`)
-    /// variant, of α and (`[2]`, `[3]`) of ln α.
-    pyramids: [OnceLock<Arc<Pyramids>>; 4],
+    /// Pyramids of the density-scaled (`[2s]`) and the plain (`[2s + 1]`)
+    /// variant, of φ(α) in albedo space s ([`AlbedoSpace`]).
+    pyramids: [OnceLock<Arc<Pyramids>>; 8],
     rows: OnceLock<Arc<Rows>>,
 }
 
@@ -412,52 +523,144 @@ impl Material {
     fn pyramids(&self, variant: &Variant) -> Result<Arc<Pyramids>> {
         let varying = matches!(self.density, Density::Map(_));
         // The plain variant's pyramids differ only with a density map.
-        let slot = &self.pyramids
-            [usize::from(varying && variant.plain) + 2 * usize::from(variant.log_albedo)];
-        if let Some(p) = slot.get() {
+        let slot =
+            &self.pyramids[usize::from(varying && variant.plain) + 2 * variant.space.index()];
+        if let Some(p) = slot.get().filter(|p| p.blur == variant.space_blur) {
             return Ok(p.clone());
         }
-        let logs;
-        let albedo = if variant.log_albedo {
-            logs = self
-                .albedo
-                .iter()
-                .map(|m| {
-                    let mut l = m.clone();
-                    for v in &mut l.values {
-                        *v = v.max(LOG_ALBEDO_FLOOR).ln();
-                    }
-                    l
-                })
-                .collect::<Vec<_>>();
-            &logs
-        } else {
-            &self.albedo
-        };
-        let alpha = if !varying || variant.plain {
-            albedo
-                .iter()
-                .map(GaussianPyramid::new)
-                .collect::<Result<_>>()?
-        } else {
-            Vec::new()
-        };
-        let (rho_alpha, rho) = match &self.density {
-            Density::Map(rho) => (
-                density_weighted(albedo, &self.density)
+        // One set of pyramids of `maps` (of α, or of φ(ᾱ)).
+        let aggregand = |maps: &[TexelMap]| -> Result<Aggregand> {
+            let alpha = if !varying || variant.plain {
+                maps.iter()
+                    .map(GaussianPyramid::new)
+                    .collect::<Result<_>>()?
+            } else {
+                Vec::new()
+            };
+            let rho_alpha = match &self.density {
+                Density::Map(_) => density_weighted(maps, &self.density)
                     .iter()
                     .map(GaussianPyramid::new)
                     .collect::<Result<_>>()?,
-                Some(GaussianPyramid::new(rho)?),
-            ),
-            Density::Constant(_) => (Vec::new(), None),
+                Density::Constant(_) => Vec::new(),
+            };
+            Ok(Aggregand { alpha, rho_alpha })
+        };
+        let linear = aggregand(&self.albedo)?;
+        let mapped = if variant.space == AlbedoSpace::Linear {
+            None
+        } else {
+            let means = self.local_means(variant.space_blur)?;
+            let map = |f: &dyn Fn(f64, f64) -> f64| {
+                means
+                    .iter()
+                    .zip(&self.albedo)
+                    .map(|(m, a)| {
+                        let mut out = m.clone();
+                        for (v, &x) in out.values.iter_mut().zip(&a.values) {
+                            *v = f(*v, x);
+                        }
+                        out
+                    })
+                    .collect::<Vec<_>>()
+            };
+            let phi = map(&|mean, _| variant.space.forward(mean));
+            let residual = map(&|mean, a| a - mean);
+            Some(Mapped {
+                phi: aggregand(&phi)?,
+                residual: aggregand(&residual)?,
+            })
+        };
+        let rho = match &self.density {
+            Density::Map(rho) => Some(GaussianPyramid::new(rho)?),
+            Density::Constant(_) => None,
         };
         let built = Arc::new(Pyramids {
-            alpha,
-            rho_alpha,
+            linear,
+            mapped,
             rho,
+            blur: variant.space_blur,
         });
-        Ok(slot.get_or_init(|| built).clone())
+        // Cached unless the slot holds another blur's (built for a variant
+        // of its own).
+        Ok(match slot.get() {
+            Some(_) => built,
+            None => slot.get_or_init(|| built).clone(),
+        })
+    }
+
+    /// Per channel, each texel's ᾱ = G_b ∗ α: the (density-weighted) mean
+    /// of α under a Gaussian of σ = b/ρ centred on the texel (b/ρ at the
+    /// texel's own density for a density map). b = 0 gives α.
+    fn local_means(&self, b: f64) -> Result<Vec<TexelMap>> {
+        if !(b.is_finite() && b >= 0.0) {
+            return Err(Error::param("space_blur", b, "finite and >= 0 (MFP)"));
+        }
+        if b == 0.0 {
+            return Ok(self.albedo.clone());
+        }
+        let Density::Map(rho) = &self.density else {
+            let Density::Constant(r) = self.density else {
+                unreachable!()
+            };
+            return Ok(self
+                .albedo
+                .iter()
+                .map(|a| pyramid::blur(a, b / r))
+                .collect());
+        };
+        let weighted = density_weighted(&self.albedo, &self.density);
+        // Few distinct densities (steps, stripes, a constant map): exact,
+        // two separable blurs per density. Otherwise one pyramid query per
+        // texel (to the pyramid's accuracy).
+        let mut levels: Vec<f64> = rho.values.clone();
+        levels.sort_by(f64::total_cmp);
+        levels.dedup();
+        if levels.len() <= EXACT_DENSITY_LEVELS {
+            let rho_blurred: Vec<TexelMap> =
+                levels.iter().map(|&r| pyramid::blur(rho, b / r)).collect();
+            let level = |r: f64| levels.partition_point(|&l| l < r);
+            return Ok(weighted
+                .iter()
+                .zip(&self.albedo)
+                .map(|(w, a)| {
+                    let w_blurred: Vec<TexelMap> =
+                        levels.iter().map(|&r| pyramid::blur(w, b / r)).collect();
+                    let mut m = a.clone();
+                    for (k, v) in m.values.iter_mut().enumerate() {
+                        let l = level(rho.values[k]);
+                        *v = w_blurred[l].values[k] / rho_blurred[l].values[k];
+                    }
+                    m
+                })
+                .collect());
+        }
+        let rho_pyramid = GaussianPyramid::new(rho)?;
+        let (nx, ny, tau) = (rho.nx, rho.ny, rho.texel);
+        weighted
+            .iter()
+            .zip(&self.albedo)
+            .map(|(w, a)| {
+                let wp = GaussianPyramid::new(w)?;
+                let mut m = a.clone();
+                for i in 0..ny {
+                    for j in 0..nx {
+                        let mu = [
+                            (j as f64 + 0.5) * tau - 0.5 * nx as f64 * tau,
+                            0.5 * ny as f64 * tau - (i as f64 + 0.5) * tau,
+                        ];
+                        let k = i * nx + j;
+                        let ([r, ra], _) = GaussianPyramid::integrate_n(
+                            [&rho_pyramid, &wp],
+                            mu,
+                            b / rho.values[k],
+                        );
+                        m.values[k] = ra / r;
+                    }
+                }
+                Ok(m)
+            })
+            .collect()
     }
 
     /// The row sums of the ellipse method (built once).
@@ -659,7 +862,7 @@ impl SvBssrdf {
                 meta.last.eval_into(d, a0, rho0, &mut scratch.last);
             }
         }
-        let (mut alpha_t, mut rho_bar) = self.aggregate(c, &frame, &scratch.kernel);
+        let (mut alpha_t, mut rho_bar) = self.aggregate(c, &frame, &scratch.kernel, true);
         // A point vertex kernel (manual's both; learned's first under normal
         // incidence, `first: None`; the last for the radiance along the
         // normal, whose last vertex lies straight below x_e) aggregates to
@@ -667,15 +870,15 @@ impl SvBssrdf {
         let (mut li, mut le) = (ai, ae);
         if let Some(meta) = vertex {
             if meta.first.is_some() {
-                li = self.aggregate(c, &frame, &scratch.first).0;
+                li = self.aggregate(c, &frame, &scratch.first, false).0;
             }
             if b.observable == Observable::Exitance {
-                le = self.aggregate(c, &frame, &scratch.last).0;
+                le = self.aggregate(c, &frame, &scratch.last, false).0;
             }
         }
         if self.variant.two_pass {
             self.all_kernel(d, alpha_t, rho_bar, &mut scratch.kernel);
-            (alpha_t, rho_bar) = self.aggregate(c, &frame, &scratch.kernel);
+            (alpha_t, rho_bar) = self.aggregate(c, &frame, &scratch.kernel, true);
         }
         let (single, multi) = b.parts(d.max(R_MIN) * rho_bar, alpha_t);
         // The single-scattering vertex: below x_i under normal incidence;
@@ -700,47 +903,84 @@ impl SvBssrdf {
         }
     }
 
-    /// (α_t, ρ̄) of channel `c` under `kernel` placed in `frame`.
+    /// (α_t, ρ̄) of channel `c` under `kernel` placed in `frame`: the linear
+    /// mean of α, or with `mapped` the two-scale mean of the variant's
+    /// [`AlbedoSpace`].
     #[inline]
-    fn aggregate(&self, c: usize, frame: &Frame, kernel: &Gmm) -> (f64, f64) {
+    fn aggregate(&self, c: usize, frame: &Frame, kernel: &Gmm, mapped: bool) -> (f64, f64) {
         let Aggregates::Kernel(p) = &self.aggregates else {
             unreachable!("kernel methods are built with their pyramids")
         };
+        match (&p.mapped, mapped) {
+            (Some(m), true) => {
+                let ([y, r], rho_bar) = self.means(p, [&m.phi, &m.residual], c, frame, kernel);
+                ((self.variant.space.inverse(y) + r).clamp(0.0, 1.0), rho_bar)
+            }
+            _ => {
+                let ([a], rho_bar) = self.means(p, [&p.linear], c, frame, kernel);
+                (a.clamp(0.0, 1.0), rho_bar)
+            }
+        }
+    }
+
+    /// The (density-weighted unless `plain`) means of the aggregands `qs`
+    /// of channel `c` under `kernel` placed in `frame`, and ρ̄ (one pyramid
+    /// query per component).
+    #[inline]
+    fn means<const N: usize>(
+        &self,
+        p: &Pyramids,
+        qs: [&Aggregand; N],
+        c: usize,
+        frame: &Frame,
+        kernel: &Gmm,
+    ) -> ([f64; N], f64) {
         let mut wsum = 0.0;
-        let (mut num, mut den, mut plain) = (0.0, 0.0, 0.0);
+        let mut den = 0.0;
+        let mut num = [0.0; N];
         for comp in &kernel.components {
             let mu = frame.place(comp);
             wsum += comp.weight;
             match (&self.material.density, &p.rho) {
                 (Density::Map(_), Some(rho)) => {
-                    let other = if self.variant.plain {
-                        &p.alpha[c]
-                    } else {
-                        &p.rho_alpha[c]
+                    // ρ, then the N aggregands (of ρq, or of q when plain).
+                    let pick = |i: usize| -> &GaussianPyramid {
+                        match i {
+                            0 => rho,
+                            i if self.variant.plain => &qs[i - 1].alpha[c],
+                            i => &qs[i - 1].rho_alpha[c],
+                        }
                     };
-                    let (r, o) = rho.integrate_pair(other, mu, comp.sigma);
-                    den += comp.weight * r;
-                    if self.variant.plain {
-                        plain += comp.weight * o;
+                    let mut v = [0.0; 3];
+                    if N == 1 {
+                        let ([r, o], _) =
+                            GaussianPyramid::integrate_n([pick(0), pick(1)], mu, comp.sigma);
+                        v[..2].copy_from_slice(&[r, o]);
                     } else {
-                        num += comp.weight * o;
+                        (v, _) = GaussianPyramid::integrate_n(
+                            [pick(0), pick(1), pick(2)],
+                            mu,
+                            comp.sigma,
+                        );
+                    }
+                    den += comp.weight * v[0];
+                    for (n, o) in num.iter_mut().zip(&v[1..=N]) {
+                        *n += comp.weight * o;
                     }
                 }
-                _ => plain += comp.weight * p.alpha[c].integrate(mu, comp.sigma),
+                _ => {
+                    let (v, _) =
+                        GaussianPyramid::integrate_n(qs.map(|q| &q.alpha[c]), mu, comp.sigma);
+                    for (n, o) in num.iter_mut().zip(v) {
+                        *n += comp.weight * o;
+                    }
+                }
             }
         }
-        // The aggregated quantity is α, or ln α for `log_albedo`.
-        let albedo = |x: f64| if self.variant.log_albedo { x.exp() } else { x };
         match &self.material.density {
-            Density::Constant(r) => (albedo(plain / wsum).clamp(0.0, 1.0), *r),
-            Density::Map(_) => {
-                let alpha_t = if self.variant.plain {
-                    plain / wsum
-                } else {
-                    num / den
-                };
-                (albedo(alpha_t).clamp(0.0, 1.0), den / wsum)
-            }
+            Density::Constant(r) => (num.map(|n| n / wsum), *r),
+            Density::Map(_) if self.variant.plain => (num.map(|n| n / wsum), den / wsum),
+            Density::Map(_) => (num.map(|n| n / den), den / wsum),
         }
     }
 
@@ -1152,7 +1392,8 @@ mod tests {
                             plain: true,
                             vertex_kernels: true,
                             two_pass: true,
-                            log_albedo: false,
+                            space: AlbedoSpace::Log,
+                            space_blur: 0.5,
                         },
                     ] {
                         // A 1 × 1 density map under a 16 × 16 albedo: resampled.
@@ -1204,11 +1445,14 @@ mod tests {
         }
     }
 
-    /// `log_albedo` aggregates the kernel-weighted geometric mean: on a fine
-    /// checker of 0.2 and 0.8 under a wide kernel, α_t is √(0.2·0.8) = 0.4
-    /// where the linear mean is 0.5; with a density map, ρ weights ln α.
+    /// Each albedo space aggregates its own mean: on a fine checker of 0.2
+    /// and 0.8 under a wide kernel with b = 0, α_t is 0.5 (linear),
+    /// √(0.2·0.8) = 0.4 (log), 1 − √(0.8·0.2) = 0.6 (absorption) and
+    /// 1 − ((√0.8 + √0.2)/2)² (transport); with a density map, ρ weights
+    /// φ(α). With b = 1 MFP, far coarser than the checker's texels, every
+    /// space gives the linear mean.
     #[test]
-    fn log_albedo_aggregates_the_geometric_mean() {
+    fn each_albedo_space_aggregates_its_mean() {
         let (_, t) = basis();
         let n = 400;
         let tau = 0.05;
@@ -1240,19 +1484,35 @@ mod tests {
                 .collect(),
         )
         .unwrap();
-        for (density, linear, geometric) in [
-            (Density::Constant(1.0), 0.5, 0.4),
-            (
-                Density::Map(rho),
-                (0.2 + 3.0 * 0.8) / 4.0,
-                ((0.2f64.ln() + 3.0 * 0.8f64.ln()) / 4.0).exp(),
-            ),
-        ] {
-            for (log_albedo, want) in [(false, linear), (true, geometric)] {
+        let mean =
+            |w: f64, f: fn(f64) -> f64, inv: fn(f64) -> f64| inv((f(0.2) + w * f(0.8)) / (1.0 + w));
+        let log = |a: f64| a.ln();
+        let absorption = |a: f64| (1.0 - a).ln();
+        let transport = |a: f64| (1.0 - a).sqrt();
+        for (density, w) in [(Density::Constant(1.0), 1.0), (Density::Map(rho), 3.0)] {
+            let linear = mean(w, |a| a, |y| y);
+            for (space, blur, want) in [
+                (AlbedoSpace::Linear, 0.0, linear),
+                (AlbedoSpace::Log, 0.0, mean(w, log, f64::exp)),
+                (
+                    AlbedoSpace::Absorption,
+                    0.0,
+                    mean(w, absorption, |y| 1.0 - y.exp()),
+                ),
+                (
+                    AlbedoSpace::Transport,
+                    0.0,
+                    mean(w, transport, |y| 1.0 - y * y),
+                ),
+                (AlbedoSpace::Log, 1.0, linear),
+                (AlbedoSpace::Absorption, 1.0, linear),
+                (AlbedoSpace::Transport, 1.0, linear),
+            ] {
                 let sv = SvBssrdf::new(
                     Method::Manual,
                     Variant {
-                        log_albedo,
+                        space,
+                        space_blur: blur,
                         ..Variant::default()
                     },
                     t.clone(),
@@ -1261,10 +1521,10 @@ mod tests {
                     density.clone(),
                 )
                 .unwrap();
-                let (alpha_t, _) = sv.aggregate(0, &frame, &kernel);
+                let (alpha_t, _) = sv.aggregate(0, &frame, &kernel, true);
                 assert!(
                     (alpha_t - want).abs() < 2e-3,
-                    "log {log_albedo}: α_t {alpha_t} against {want}"
+                    "{space:?}, b = {blur}: α_t {alpha_t} against {want}"
                 );
             }
         }
@@ -1309,14 +1569,15 @@ mod tests {
                 let (ai, ae) = (albedo.at(xi[0], xi[1]), albedo.at(xe[0], xe[1]));
                 let rho0 = 0.5 * (density.at(xi[0], xi[1]) + density.at(xe[0], xe[1]));
                 let a0 = 0.5 * (ai + ae);
-                let agg = |k: &Gmm| sv.aggregate(0, &frame, k);
-                let (mut alpha_t, mut rho_bar) = agg(&meta.all.eval(d, a0, rho0).gmm);
+                // α_t in the variant's space, the vertex albedos linear.
+                let agg = |k: &Gmm, mapped| sv.aggregate(0, &frame, k, mapped);
+                let (mut alpha_t, mut rho_bar) = agg(&meta.all.eval(d, a0, rho0).gmm, true);
                 if two_pass {
-                    (alpha_t, rho_bar) = agg(&meta.all.eval(d, alpha_t, rho_bar).gmm);
+                    (alpha_t, rho_bar) = agg(&meta.all.eval(d, alpha_t, rho_bar).gmm, true);
                 }
                 let first = meta.first.as_ref().unwrap();
-                let li = agg(&first.eval(d, a0, rho0).gmm).0;
-                let le = agg(&meta.last.eval(d, a0, rho0).gmm).0;
+                let li = agg(&first.eval(d, a0, rho0).gmm, false).0;
+                let le = agg(&meta.last.eval(d, a0, rho0).gmm, false).0;
                 assert!(
                     (li - le).abs() > 1e-3,
                     "the two vertex kernels must differ here"
