@@ -18,7 +18,7 @@ use svkernel::metamodel::basis::BasisModel;
 use svkernel::metamodel::meta::MetaModelFile;
 use svkernel::pair::VertexClass;
 use svkernel::provenance::Provenance;
-use svkernel::render::estimator::Sampling;
+use svkernel::render::estimator::{Sampling, Sequence};
 use svkernel::render::svbssrdf::{AlbedoSpace, SPACE_BLUR};
 
 #[derive(Parser)]
@@ -118,6 +118,9 @@ enum Command {
         /// How entry points x_i are sampled.
         #[arg(long, value_enum, default_value = "importance")]
         sampling: Sampling,
+        /// The numbers samples are made of (as for `render`).
+        #[arg(long, value_enum, default_value = "sobol")]
+        sequence: Sequence,
         #[arg(long, default_value_t = 1)]
         seed: u64,
         #[command(flatten)]
@@ -240,6 +243,10 @@ struct RenderArgs {
     /// How entry points x_i are sampled.
     #[arg(long, value_enum, default_value = "importance")]
     sampling: Sampling,
+    /// The numbers samples are made of: Owen-scrambled Sobol' points
+    /// (randomised QMC) or independent ones.
+    #[arg(long, value_enum, default_value = "sobol")]
+    sequence: Sequence,
     /// Render everything in full, even effects the scene does not call
     /// for (grey RGB as three channels, a constant density map through a
     /// pyramid, a homogeneous material through every method's machinery).
@@ -1171,6 +1178,7 @@ struct CompareArgs {
     curves: Option<(u64, Vec<u32>, Vec<u64>)>,
     analysis: bool,
     sampling: Sampling,
+    sequence: Sequence,
     seed: u64,
     models: ModelArgs,
     out: PathBuf,
@@ -1183,6 +1191,7 @@ fn compare(a: CompareArgs) -> Result<()> {
     let scene = svkernel::render::scene::Scene::find(&a.scene)?;
     let opts = RenderOptions {
         sampling: a.sampling,
+        sequence: a.sequence,
         seed: a.seed,
         spp: a.spp,
         reference_paths: a.paths,
@@ -1279,6 +1288,7 @@ fn render(a: RenderArgs) -> Result<()> {
         targets,
         spp: a.spp,
         sampling: a.sampling,
+        sequence: a.sequence,
         variant: Variant {
             plain: a.plain,
             vertex_kernels: !a.point_albedos,
@@ -1404,6 +1414,7 @@ fn main() -> std::process::ExitCode {
             no_curves,
             no_analysis,
             sampling,
+            sequence,
             seed,
             models,
             out,
@@ -1414,6 +1425,7 @@ fn main() -> std::process::ExitCode {
             curves: (!no_curves).then_some((truth_paths, spp_list, paths_list)),
             analysis: !no_analysis,
             sampling,
+            sequence,
             seed,
             models,
             out,

@@ -28,7 +28,7 @@ use crate::forward::runner::{RunOptions, Shard, chunk_range, run};
 use crate::jobs::shipped::Models;
 use crate::provenance::Provenance;
 use crate::render::analysis::analyse;
-use crate::render::estimator::{self, Image, Sampling, Settings, View};
+use crate::render::estimator::{self, Image, Sampling, Sequence, Settings, View};
 use crate::render::reference::{REFERENCE_FORMAT, REFERENCE_VERSION, Reference, ReferenceTally};
 use crate::render::scene::{LightKind, Observable, Scene};
 use crate::render::svbssrdf::{BasisTable, Density, Material, Method, SvBssrdf, Variant};
@@ -101,6 +101,7 @@ pub struct RenderOptions {
     pub targets: Vec<Target>,
     pub spp: Option<u32>,
     pub sampling: Sampling,
+    pub sequence: Sequence,
     pub variant: Variant,
     pub seed: u64,
     pub reference_paths: Option<u64>,
@@ -141,6 +142,7 @@ impl RenderOptions {
             targets: Vec::new(),
             spp: None,
             sampling: Sampling::Importance,
+            sequence: Sequence::default(),
             variant: Variant::default(),
             seed: 1,
             reference_paths: None,
@@ -456,6 +458,7 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
     let settings = Settings {
         spp: opts.spp.unwrap_or(scene.samples),
         sampling: opts.sampling,
+        sequence: opts.sequence,
         seed: opts.seed,
     };
     if targets.iter().any(|t| matches!(t, Target::Model(_))) {
@@ -711,6 +714,10 @@ pub struct RenderDoc {
     /// Samples per pixel of the model methods.
     pub spp: u32,
     pub sampling: Sampling,
+    /// The numbers the samples are made of (documents written before it
+    /// existed read as `independent`).
+    #[serde(default = "independent")]
+    pub sequence: Sequence,
     /// [`Variant::tag`]: "" for the default.
     pub variant: String,
     pub seed: u64,
@@ -979,6 +986,7 @@ pub fn write_outputs(scene: &Scene, opts: &RenderOptions, passes: &[Pass]) -> Re
         conventions: "maps: centred on the origin, row 0 = +y, column 0 = -x, nearest-neighbour, edge texels extend to infinity; pixel (i, j) covers x in -W + [j, j+1]*2W/N, y in W - [i+1, i]*2W/N; z < 0 is the medium (half-space)".into(),
         spp: opts.spp.unwrap_or(scene.samples),
         sampling: opts.sampling,
+        sequence: opts.sequence,
         variant: opts.variant.tag(),
         seed: opts.seed,
         reference_paths: opts.reference_paths.unwrap_or(scene.reference_paths),
@@ -1102,4 +1110,9 @@ mod tests {
         }
         std::fs::remove_dir_all(&d).unwrap();
     }
+}
+
+/// The sequence of documents written before [`RenderDoc::sequence`].
+fn independent() -> Sequence {
+    Sequence::Independent
 }
