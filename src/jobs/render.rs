@@ -1046,6 +1046,11 @@ pub fn merge_reference(inputs: &[PathBuf], out: &Path) -> Result<()> {
     crate::jobs::store::write_json_compact_atomic(out, &doc)
 }
 
+/// The sequence of documents written before [`RenderDoc::sequence`].
+fn independent() -> Sequence {
+    Sequence::Independent
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1110,9 +1115,4 @@ mod tests {
         }
         std::fs::remove_dir_all(&d).unwrap();
     }
-}
-
-/// The sequence of documents written before [`RenderDoc::sequence`].
-fn independent() -> Sequence {
-    Sequence::Independent
 }
