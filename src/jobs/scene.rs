@@ -578,6 +578,19 @@ enum Pattern {
     Complex {
         seed: u64,
     },
+    /// Veins of half-width `width` every `spacing` across `angle`,
+    /// displaced by turbulence ([`marble_pattern`]).
+    Marble {
+        spacing: f64,
+        width: f64,
+        angle: f64,
+        seed: u64,
+    },
+    /// Smooth mottling of feature size `cell` ([`fbm`]).
+    Mottled {
+        cell: f64,
+        seed: u64,
+    },
 }
 
 impl Pattern {
@@ -600,6 +613,13 @@ impl Pattern {
                 (dx.hypot(dy) < radius) as u8 as f64
             }
             Pattern::Complex { seed } => complex_pattern(seed, x, y),
+            Pattern::Marble {
+                spacing,
+                width,
+                angle,
+                seed,
+            } => marble_pattern(spacing, width, angle, seed, x, y),
+            Pattern::Mottled { cell, seed } => fbm(seed, x / cell, y / cell),
         }
     }
 }
@@ -634,6 +654,8 @@ impl MapSpec {
                     "ramp" => &["values", "size", "length"],
                     "dots" => &["values", "size", "spacing", "radius"],
                     "complex" => &["values", "size", "seed"],
+                    "marble" => &["values", "size", "spacing", "width", "angle", "seed"],
+                    "mottled" => &["values", "size", "cell", "seed"],
                     _ => &[
                         "values", "size", "width", "angle", "cell", "length", "spacing", "radius",
                         "seed",
@@ -790,10 +812,22 @@ impl MapSpec {
             "complex" => Pattern::Complex {
                 seed: raw.seed.unwrap_or(1),
             },
+            "marble" => Pattern::Marble {
+                spacing: positive("spacing", raw.spacing, 3.0)?,
+                width: positive("width", raw.width, 0.1)?,
+                angle: finite("angle", raw.angle.unwrap_or(30.0))?.to_radians(),
+                seed: raw.seed.unwrap_or(1),
+            },
+            "mottled" => Pattern::Mottled {
+                cell: positive("cell", raw.cell, 1.0)?,
+                seed: raw.seed.unwrap_or(1),
+            },
             p => {
                 return Err(bad(
                     ".pattern",
-                    format!("unknown pattern '{p}' (stripes, checker, ramp, dots, complex)"),
+                    format!(
+                        "unknown pattern '{p}' (stripes, checker, ramp, dots, complex, marble, mottled)"
+                    ),
                 ));
             }
         };
@@ -914,6 +948,48 @@ fn complex_pattern(seed: u64, x: f64, y: f64) -> f64 {
         on |= dx.hypot(dy) < scale / 6.0;
     }
     on as u8 as f64
+}
+
+/// Value noise in [0, 1] on the unit lattice: a uniform number per lattice
+/// point (stream (seed, point)), blended by smoothstep.
+fn value_noise(seed: u64, x: f64, y: f64) -> f64 {
+    let (i, j) = (x.floor(), y.floor());
+    let smooth = |t: f64| t * t * (3.0 - 2.0 * t);
+    let (fx, fy) = (smooth(x - i), smooth(y - j));
+    let at = |a: f64, b: f64| {
+        let key = ((a as i64 as u64) << 32) ^ (b as i64 as u64 & 0xffff_ffff);
+        PathRng::new(seed, key).uniform()
+    };
+    let (v00, v10) = (at(i, j), at(i + 1.0, j));
+    let (v01, v11) = (at(i, j + 1.0), at(i + 1.0, j + 1.0));
+    let bottom = v00 + fx * (v10 - v00);
+    let top = v01 + fx * (v11 - v01);
+    bottom + fy * (top - bottom)
+}
+
+/// Fractal value noise in [0, 1]: four octaves of [`value_noise`], each at
+/// twice the frequency and half the amplitude of the last, normalised.
+fn fbm(seed: u64, x: f64, y: f64) -> f64 {
+    let (mut sum, mut amp, mut freq, mut norm) = (0.0, 1.0, 1.0, 0.0);
+    for octave in 0..4u64 {
+        sum += amp * value_noise(seed.wrapping_add(octave), x * freq, y * freq);
+        norm += amp;
+        amp *= 0.5;
+        freq *= 2.0;
+    }
+    sum / norm
+}
+
+/// Marble veins: 1 on a vein, falling linearly to 0 at `width` from its
+/// centre line. Vein centre lines run across `angle` every `spacing`,
+/// displaced along it by turbulence ([`fbm`] at the spacing's scale, ±0.75
+/// spacing).
+fn marble_pattern(spacing: f64, width: f64, angle: f64, seed: u64, x: f64, y: f64) -> f64 {
+    let u = x * angle.cos() + y * angle.sin();
+    let t = u + 1.5 * spacing * (fbm(seed, x / spacing, y / spacing) - 0.5);
+    // Distance to the nearest centre line (t a multiple of `spacing`).
+    let dist = (t - spacing * (t / spacing).round()).abs();
+    (1.0 - dist / width).max(0.0)
 }
 
 /// Loads the first layer of an OpenEXR file: channels R, G, B (3 maps), or
@@ -1060,6 +1136,38 @@ mod tests {
         let p = dir.join(name);
         std::fs::write(&p, text).unwrap();
         p
+    }
+
+    /// The translucent scenes' patterns: selectors in [0, 1], continuous
+    /// mottling that spans most of its range with mean ≈ 1/2, and marble
+    /// veins covering about their width's share of the plane (a vein of
+    /// half-width w falling linearly covers 2w/spacing at half weight).
+    #[test]
+    fn marble_and_mottled_patterns() {
+        let (n, step) = (400, 0.05);
+        let grid = || (0..n * n).map(|k| ((k % n) as f64 * step, (k / n) as f64 * step));
+        let mottled: Vec<f64> = grid().map(|(x, y)| fbm(3, x, y)).collect();
+        let mean = mottled.iter().sum::<f64>() / mottled.len() as f64;
+        let (lo, hi) = mottled
+            .iter()
+            .fold((1.0f64, 0.0f64), |(a, b), &v| (a.min(v), b.max(v)));
+        assert!((0.0..=1.0).contains(&lo) && (0.0..=1.0).contains(&hi));
+        assert!((mean - 0.5).abs() < 0.1 && hi - lo > 0.5, "{mean} {lo} {hi}");
+        // Continuous: neighbours one texel apart differ by little.
+        let jump = (1..mottled.len())
+            .filter(|k| k % n != 0)
+            .map(|k| (mottled[k] - mottled[k - 1]).abs());
+        assert!(jump.fold(0.0f64, f64::max) < 0.2);
+        let (spacing, width) = (2.5, 0.15);
+        let marble: Vec<f64> = grid()
+            .map(|(x, y)| marble_pattern(spacing, width, 0.5, 5, x, y))
+            .collect();
+        assert!(marble.iter().all(|v| (0.0..=1.0).contains(v)));
+        let share = marble.iter().sum::<f64>() / marble.len() as f64;
+        let want = width / spacing; // ∫(1 − |d|/w) over ±w = w, per spacing
+        assert!((share - want).abs() < 0.5 * want, "{share} vs {want}");
+        assert_eq!(fbm(3, 1.3, -2.7), fbm(3, 1.3, -2.7));
+        assert_ne!(fbm(3, 1.3, -2.7), fbm(4, 1.3, -2.7));
     }
 
     #[test]

@@ -245,7 +245,7 @@ pub fn cache_dir(dir: Option<&Path>) -> Result<PathBuf> {
         })
 }
 
-/// The canonical scenes, by name, as TOML.
+/// The canonical scenes, by name, as TOML (the last three translucent).
 pub const SCENES: &[(&str, &str)] = &[
     ("stripes", include_str!("../../scenes/stripes.toml")),
     ("checker", include_str!("../../scenes/checker.toml")),
@@ -253,6 +253,9 @@ pub const SCENES: &[(&str, &str)] = &[
     ("color", include_str!("../../scenes/color.toml")),
     ("density", include_str!("../../scenes/density.toml")),
     ("features", include_str!("../../scenes/features.toml")),
+    ("marble", include_str!("../../scenes/marble.toml")),
+    ("skin", include_str!("../../scenes/skin.toml")),
+    ("milk", include_str!("../../scenes/milk.toml")),
 ];
 
 /// The built-in scene called `name`.
