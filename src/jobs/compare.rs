@@ -233,6 +233,36 @@ pub fn reference_time_for(reference: &Curve, e: f64) -> Option<f64> {
     })
 }
 
+/// The reference's error after render time `t`, read off its curve: log-log
+/// interpolation between its points, and beyond them e ∝ t^(−1/2) from the
+/// nearest end point (the inverse of [`reference_time_for`]).
+pub fn reference_error_at(reference: &Curve, t: f64) -> Option<f64> {
+    let mut pts: Vec<(f64, f64)> = reference
+        .points
+        .iter()
+        .filter(|p| p.rel_rmse > 0.0 && p.render_s() > 0.0)
+        .map(|p| (p.render_s(), p.rel_rmse))
+        .collect();
+    pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let (first, last) = (*pts.first()?, *pts.last()?);
+    if t.is_nan() || t <= 0.0 {
+        return None;
+    }
+    if t <= first.0 {
+        return Some(first.1 * (first.0 / t).sqrt());
+    }
+    if t >= last.0 {
+        return Some(last.1 * (last.0 / t).sqrt());
+    }
+    pts.windows(2).find_map(|w| {
+        let ((t0, e0), (t1, e1)) = (w[0], w[1]);
+        ((t0..=t1).contains(&t) && t0 != t1).then(|| {
+            let f = (t.ln() - t0.ln()) / (t1.ln() - t0.ln());
+            (e0.ln() + f * (e1.ln() - e0.ln())).exp()
+        })
+    })
+}
+
 /// How much faster a model is than brute force at the model's own error.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Speedup {
@@ -248,6 +278,15 @@ pub struct Speedup {
     /// The model's lowest error over its budgets (its floor, bias-bound).
     #[serde(with = "crate::doc::nan_as_null")]
     pub floor: f64,
+    /// At equal time: the reference's error after the model's render time
+    /// at this budget ([`reference_error_at`]); `reference_error / rel_rmse`
+    /// is how many times lower the model's error is.
+    #[serde(default = "f64_nan", with = "crate::doc::nan_as_null")]
+    pub reference_error: f64,
+}
+
+fn f64_nan() -> f64 {
+    f64::NAN
 }
 
 impl Speedup {
@@ -282,6 +321,8 @@ pub fn speedups(curves: &[Curve]) -> Vec<Speedup> {
                         reference_s: t,
                         ratio: t / p.render_s().max(1e-9),
                         floor,
+                        reference_error: reference_error_at(reference, p.render_s())
+                            .unwrap_or(f64::NAN),
                     })
                 })
                 .max_by(|a, b| a.ratio.total_cmp(&b.ratio))
@@ -368,7 +409,7 @@ impl std::fmt::Display for Speedup {
         write!(
             f,
             "{:<11} {:>5} spp {:>7.3} s (+{:.3} s set-up)  error {:>6.2} %  reference needs \
-             {:>7.3} s  ({:.2}×; {:.2}× with set-up)",
+             {:>7.3} s  ({:.2}×; {:.2}× with set-up); in equal time it errs {:.2} % ({:.2}×)",
             self.method.name(),
             self.point.budget,
             self.point.render_s(),
@@ -377,6 +418,8 @@ impl std::fmt::Display for Speedup {
             self.reference_s,
             self.ratio,
             self.ratio_with_setup(),
+            100.0 * self.reference_error,
+            self.reference_error / self.point.rel_rmse,
         )
     }
 }
@@ -776,6 +819,8 @@ pub fn report_blocks(doc: &CompareDoc, out: &Path) -> Vec<Block> {
                 "reference render time to same error [s]",
                 "speed-up",
                 "speed-up with set-up",
+                "reference error in equal time",
+                "error ratio in equal time",
                 "error floor",
             ],
             curves
@@ -791,6 +836,8 @@ pub fn report_blocks(doc: &CompareDoc, out: &Path) -> Vec<Block> {
                         num(Some(p.reference_s)),
                         format!("{:.2}×", p.ratio),
                         format!("{:.2}×", p.ratio_with_setup()),
+                        pct(Some(p.reference_error)),
+                        format!("{:.2}×", p.reference_error / p.point.rel_rmse),
                         pct(Some(p.floor)),
                     ]
                 })
@@ -800,7 +847,9 @@ pub fn report_blocks(doc: &CompareDoc, out: &Path) -> Vec<Block> {
             "Per model: the budget where it beats brute force by the most at render time. The \
              reference's time to the same error is read off its curve (log-log interpolation; \
              beyond its points, e ∝ t^(−1/2)); a speed-up below 1× means the reference is \
-             faster at that error. The floor is the model's lowest error over its budgets."
+             faster at that error. In equal time: the reference's error after the model's \
+             render time, read off the same curve, and how many times the model's error it is. \
+             The floor is the model's lowest error over its budgets."
                 .into(),
         ));
     }
@@ -1184,7 +1233,8 @@ pub fn verdict(doc: &CompareDoc) -> String {
         };
         text.push_str(&format!(
             ". At equal error{pass} learned renders {} than the reference ({} error at {} spp: \
-             {} against the reference's {}; with its {} set-up counted, {})",
+             {} against the reference's {}; with its {} set-up counted, {}). In equal time \
+             the reference errs {}, {:.1}× as much",
             how(s.ratio),
             pct(Some(s.point.rel_rmse)),
             s.point.budget,
@@ -1192,6 +1242,8 @@ pub fn verdict(doc: &CompareDoc) -> String {
             secs(s.reference_s),
             secs(s.point.setup_s),
             how(s.ratio_with_setup()),
+            pct(Some(s.reference_error)),
+            s.reference_error / s.point.rel_rmse,
         ));
     }
     text.push('.');
@@ -1297,8 +1349,21 @@ mod tests {
         // Above its worst: the same law from the first point.
         assert!((reference_time_for(&r, 1.0).unwrap() - 0.01).abs() < 1e-12);
         let m = curve("learned", &[(0.5, 0.05), (2.0, 0.02)]);
-        let s = &speedups(&[r, m])[0];
+        let s = &speedups(&[r.clone(), m])[0];
         // 0.02 costs the reference 25 s: 12.5× at 2 s (4 s at 0.05: 8×).
         assert!((s.ratio - 12.5).abs() < 1e-9 && s.floor == 0.02, "{s:?}");
+        // In equal time (2 s) the reference errs 0.1/√2; the inverse reading
+        // agrees with the forward one everywhere, inside and beyond.
+        assert!(
+            (s.reference_error - 0.1 / 2f64.sqrt()).abs() < 1e-12,
+            "{s:?}"
+        );
+        for t in [0.01, 1.0, 10.0, 100.0, 1e4] {
+            let e = reference_error_at(&r, t).unwrap();
+            assert!(
+                (reference_time_for(&r, e).unwrap() / t - 1.0).abs() < 1e-9,
+                "{t}"
+            );
+        }
     }
 }

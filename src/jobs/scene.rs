@@ -1152,7 +1152,10 @@ mod tests {
             .iter()
             .fold((1.0f64, 0.0f64), |(a, b), &v| (a.min(v), b.max(v)));
         assert!((0.0..=1.0).contains(&lo) && (0.0..=1.0).contains(&hi));
-        assert!((mean - 0.5).abs() < 0.1 && hi - lo > 0.5, "{mean} {lo} {hi}");
+        assert!(
+            (mean - 0.5).abs() < 0.1 && hi - lo > 0.5,
+            "{mean} {lo} {hi}"
+        );
         // Continuous: neighbours one texel apart differ by little.
         let jump = (1..mottled.len())
             .filter(|k| k % n != 0)
