@@ -421,8 +421,8 @@ fn render_reference_shards_merge_and_bad_input() {
 }
 
 /// The README's first command end to end (fewer profile paths): the
-/// profile, the plots, both demo scenes compared with every method, and
-/// one self-contained HTML report.
+/// profile, the plots, the three demo scenes compared with every method,
+/// and one self-contained HTML report.
 #[test]
 fn demo_runs_end_to_end() {
     let d = tmpdir("demo");
@@ -434,7 +434,7 @@ fn demo_runs_end_to_end() {
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(d.join("profile.png").exists() && d.join("profile.json").exists());
-    for scene in ["stripes", "checker"] {
+    for scene in ["stripes", "checker", "marble"] {
         assert!(d.join(scene).join("main/row.png").exists(), "{scene}");
         let doc = json(&d.join(scene).join("render.json"));
         let methods = doc["passes"][0]["methods"].as_array().unwrap();
@@ -453,7 +453,7 @@ fn demo_runs_end_to_end() {
     let html = std::fs::read_to_string(d.join("index.html")).unwrap();
     // Self-contained: every image inline, none linked.
     let imgs = html.matches("<img ").count();
-    assert!(imgs >= 2 * 14 + 2, "{imgs} images");
+    assert!(imgs >= 3 * 14 + 2, "{imgs} images");
     assert_eq!(html.matches("src=\"data:image/").count(), imgs);
     assert!(html.contains("What accuracy costs in time") && html.contains("learned"));
     let md = std::fs::read_to_string(d.join("index.md")).unwrap();

@@ -76,7 +76,7 @@ pub fn run(out: &Path, paths: u64, models: &Models, progress: bool) -> Result<De
 }
 
 /// The scenes the demo renders, the reference paths and samples per pixel.
-pub const DEMO_SCENES: [&str; 2] = ["stripes", "checker"];
+pub const DEMO_SCENES: [&str; 3] = ["stripes", "checker", "marble"];
 const DEMO_REFERENCE_PATHS: u64 = 4_000_000;
 const DEMO_SPP: u32 = 64;
 /// Error-vs-time budgets of the demo: truth paths, model spp, reference paths.
