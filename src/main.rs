@@ -902,7 +902,7 @@ fn demo(out: PathBuf, paths: u64, models: ModelArgs) -> Result<()> {
     println!("  manual : {}", r.manual);
     println!("wrote {} and {}", r.json.display(), r.plot.display());
     println!(
-        "comparing {} (64 spp importance sampling, reference 4e6 paths, 64² pixels, error-vs-time curves):",
+        "comparing {} (64 spp importance sampling on Sobol' points, reference 4e6 paths, 64² pixels, error-vs-time curves):",
         svkernel::jobs::demo::DEMO_SCENES.join(", ")
     );
     let scenes = svkernel::jobs::demo::compare_scenes(&out, &models, true)?;
