@@ -23,9 +23,27 @@ fn every_shipped_scene_loads() {
     assert_eq!(
         names,
         [
-            "checker", "color", "complex", "density", "features", "stripes"
+            "checker", "color", "complex", "density", "features", "marble", "milk", "skin",
+            "stripes"
         ]
     );
+}
+
+/// The translucent scenes are translucent: albedo ≥ 0.95 on most of the
+/// surface (every channel), as docs/design.md §5 says.
+#[test]
+fn translucent_scenes_are_bright_over_most_of_the_surface() {
+    for name in ["marble", "skin", "milk"] {
+        let s = Scene::load(Path::new(&format!("scenes/{name}.toml"))).unwrap();
+        for m in &s.albedo {
+            let bright = m.values.iter().filter(|&&v| v >= 0.95).count();
+            assert!(
+                bright as f64 > 0.8 * m.values.len() as f64,
+                "{name}: {bright} of {} texels ≥ 0.95",
+                m.values.len()
+            );
+        }
+    }
 }
 
 /// The extra (non-canonical) example scenes load and exercise what they
