@@ -202,17 +202,23 @@ pub fn plot_curves(path: &Path, scene: &str, curves: &[Curve]) -> Result<()> {
     chart_svg(&path.with_extension("svg"), &axes, &series)
 }
 
-/// The reference's render time to reach relative error `e`, read off its
-/// curve: log-log interpolation between its points, and beyond them the
-/// Monte Carlo law e ∝ t^(−1/2) from the nearest end point.
-pub fn reference_time_for(reference: &Curve, e: f64) -> Option<f64> {
-    let mut pts: Vec<(f64, f64)> = reference
+/// A curve's (render time, error) points with both positive, by time.
+fn time_error_points(curve: &Curve) -> Vec<(f64, f64)> {
+    let mut pts: Vec<(f64, f64)> = curve
         .points
         .iter()
         .filter(|p| p.rel_rmse > 0.0 && p.render_s() > 0.0)
         .map(|p| (p.render_s(), p.rel_rmse))
         .collect();
     pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+    pts
+}
+
+/// The reference's render time to reach relative error `e`, read off its
+/// curve: log-log interpolation between its points, and beyond them the
+/// Monte Carlo law e ∝ t^(−1/2) from the nearest end point.
+pub fn reference_time_for(reference: &Curve, e: f64) -> Option<f64> {
+    let pts = time_error_points(reference);
     let (first, last) = (*pts.first()?, *pts.last()?);
     if e.is_nan() || e <= 0.0 {
         return None;
@@ -237,13 +243,7 @@ pub fn reference_time_for(reference: &Curve, e: f64) -> Option<f64> {
 /// interpolation between its points, and beyond them e ∝ t^(−1/2) from the
 /// nearest end point (the inverse of [`reference_time_for`]).
 pub fn reference_error_at(reference: &Curve, t: f64) -> Option<f64> {
-    let mut pts: Vec<(f64, f64)> = reference
-        .points
-        .iter()
-        .filter(|p| p.rel_rmse > 0.0 && p.render_s() > 0.0)
-        .map(|p| (p.render_s(), p.rel_rmse))
-        .collect();
-    pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let pts = time_error_points(reference);
     let (first, last) = (*pts.first()?, *pts.last()?);
     if t.is_nan() || t <= 0.0 {
         return None;

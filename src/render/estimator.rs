@@ -716,6 +716,27 @@ mod tests {
             / n as f64
     }
 
+    /// The pixel averages of M over `pixels` of `view` under a light of
+    /// radius 1: [`disk_integral`] at 8 × 8 midpoints of each pixel.
+    fn pixel_quadratures(sv: &SvBssrdf, view: &View, pixels: &[(usize, usize)]) -> Vec<f64> {
+        pixels
+            .iter()
+            .map(|&(i, j)| {
+                let (c, h) = view.pixel_corner(i, j);
+                let q = 8;
+                let mut quad = 0.0;
+                for a in 0..q {
+                    for b in 0..q {
+                        let x = c[0] + h * (a as f64 + 0.5) / q as f64;
+                        let y = c[1] + h * (b as f64 + 0.5) / q as f64;
+                        quad += disk_integral(sv, x.hypot(y), 1.0) / (q * q) as f64;
+                    }
+                }
+                quad
+            })
+            .collect()
+    }
+
     #[test]
     fn truncated_sampler_pdf_is_normalised_and_matches_its_samples() {
         for (alpha, rho, dist, radius) in [
@@ -769,22 +790,7 @@ mod tests {
                 half_width: 1.25,
             };
             let pixels = [(2, 2), (2, 3), (0, 4)];
-            let quads: Vec<f64> = pixels
-                .iter()
-                .map(|&(i, j)| {
-                    let (c, h) = view.pixel_corner(i, j);
-                    let q = 8;
-                    let mut quad = 0.0;
-                    for a in 0..q {
-                        for b in 0..q {
-                            let x = c[0] + h * (a as f64 + 0.5) / q as f64;
-                            let y = c[1] + h * (b as f64 + 0.5) / q as f64;
-                            quad += disk_integral(&sv, x.hypot(y), 1.0) / (q * q) as f64;
-                        }
-                    }
-                    quad
-                })
-                .collect();
+            let quads = pixel_quadratures(&sv, &view, &pixels);
             for sampling in [Sampling::Uniform, Sampling::Importance, Sampling::Mis] {
                 let settings = Settings {
                     spp: 4096,
@@ -816,22 +822,7 @@ mod tests {
             half_width: 1.25,
         };
         let pixels = vec![(1, 1), (2, 3), (0, 4)];
-        let quads = pixels
-            .iter()
-            .map(|&(i, j)| {
-                let (c, h) = view.pixel_corner(i, j);
-                let q = 8;
-                let mut quad = 0.0;
-                for a in 0..q {
-                    for b in 0..q {
-                        let x = c[0] + h * (a as f64 + 0.5) / q as f64;
-                        let y = c[1] + h * (b as f64 + 0.5) / q as f64;
-                        quad += disk_integral(sv, x.hypot(y), 1.0) / (q * q) as f64;
-                    }
-                }
-                quad
-            })
-            .collect();
+        let quads = pixel_quadratures(sv, &view, &pixels);
         (view, pixels, quads)
     }
 
