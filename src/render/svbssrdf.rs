@@ -194,6 +194,12 @@ pub enum AlbedoSpace {
     Transport,
 }
 
+/// The scale (MFP at the local density) over which the estimator's
+/// importance sampling averages the albedo: a path's first flights reach
+/// about one mean free path, so the profile that sets where x_i falls is
+/// that of the albedo around x_e, not of the texel under it.
+pub const SAMPLING_BLUR: f64 = 1.0;
+
 /// Density maps with at most this many distinct values get exact local
 /// means ([`pyramid::blur`] per value); others read the pyramid.
 const EXACT_DENSITY_LEVELS: usize = 16;
@@ -485,6 +491,9 @@ pub struct Material {
     /// variant, of φ(α) in albedo space s ([`AlbedoSpace`]).
     pyramids: [OnceLock<Arc<Pyramids>>; 8],
     rows: OnceLock<Arc<Rows>>,
+    /// The channel-mean albedo under a Gaussian of σ = [`SAMPLING_BLUR`]/ρ
+    /// ([`Material::sampling_albedo`]).
+    sampling: OnceLock<TexelMap>,
 }
 
 impl Material {
@@ -506,6 +515,7 @@ impl Material {
             density,
             pyramids: Default::default(),
             rows: OnceLock::new(),
+            sampling: OnceLock::new(),
         })
     }
 
@@ -663,6 +673,41 @@ impl Material {
             .collect()
     }
 
+    /// The albedo the estimator's importance sampling reads at `(x, y)`:
+    /// the channel mean of the density-weighted local mean
+    /// (G ∗ ρα)/(G ∗ ρ) under a Gaussian of σ = [`SAMPLING_BLUR`]/ρ̄, ρ̄ the
+    /// map's mean density (one σ for the whole map: this only steers where
+    /// x_i is drawn, so it need not follow the density texel by texel).
+    /// Built once, by separable blurs ([`pyramid::blur`]).
+    pub fn sampling_albedo(&self, x: f64, y: f64) -> f64 {
+        self.sampling
+            .get_or_init(|| {
+                let (sigma, rho) = match &self.density {
+                    Density::Constant(r) => (SAMPLING_BLUR / r, None),
+                    Density::Map(m) => {
+                        let mean = m.values.iter().sum::<f64>() / m.values.len() as f64;
+                        let sigma = SAMPLING_BLUR / mean;
+                        (sigma, Some(pyramid::blur(m, sigma)))
+                    }
+                };
+                let weighted = density_weighted(&self.albedo, &self.density);
+                let mut out = pyramid::blur(&weighted[0], sigma);
+                for w in &weighted[1..] {
+                    let b = pyramid::blur(w, sigma);
+                    out.values
+                        .iter_mut()
+                        .zip(&b.values)
+                        .for_each(|(v, o)| *v += o);
+                }
+                let n = weighted.len() as f64;
+                for (k, v) in out.values.iter_mut().enumerate() {
+                    *v /= n * rho.as_ref().map_or(1.0, |r| r.values[k]);
+                }
+                out
+            })
+            .at(x, y)
+    }
+
     /// The row sums of the ellipse method (built once).
     fn rows(&self) -> Arc<Rows> {
         self.rows
@@ -778,6 +823,12 @@ impl SvBssrdf {
     /// Number of channels.
     pub fn channels(&self) -> usize {
         self.material.albedo.len()
+    }
+
+    /// The albedo importance sampling reads at a point
+    /// ([`Material::sampling_albedo`]).
+    pub fn sampling_albedo(&self, x: f64, y: f64) -> f64 {
+        self.material.sampling_albedo(x, y)
     }
 
     /// The albedo of channel `c` at a point.
@@ -1526,6 +1577,50 @@ mod tests {
                     (alpha_t - want).abs() < 2e-3,
                     "{space:?}, b = {blur}: α_t {alpha_t} against {want}"
                 );
+            }
+        }
+    }
+
+    /// The importance sampler's albedo is the local mean over about a mean
+    /// free path: the constant on a constant map, the mean of a checker far
+    /// finer than that, and density-weighted on a density map.
+    #[test]
+    fn sampling_albedo_is_the_local_mean() {
+        let (_, t) = basis();
+        let n = 200;
+        let checker: Vec<f64> = (0..n * n)
+            .map(|k| if (k / n + k % n) % 2 == 0 { 0.2 } else { 0.8 })
+            .collect();
+        let albedo = TexelMap::new(n, n, 0.05, checker).unwrap();
+        let heavy = TexelMap::new(
+            n,
+            n,
+            0.05,
+            albedo
+                .values
+                .iter()
+                .map(|&a| if a > 0.5 { 3.0 } else { 1.0 })
+                .collect(),
+        )
+        .unwrap();
+        let constant = TexelMap::new(1, 1, 0.05, vec![0.7]).unwrap();
+        for (map, density, want) in [
+            (constant, Density::Constant(2.0), 0.7),
+            (albedo.clone(), Density::Constant(1.0), 0.5),
+            (albedo, Density::Map(heavy), (0.2 + 3.0 * 0.8) / 4.0),
+        ] {
+            let sv = SvBssrdf::new(
+                Method::Point,
+                Variant::default(),
+                t.clone(),
+                None,
+                vec![map],
+                density,
+            )
+            .unwrap();
+            for (x, y) in [(0.0, 0.0), (0.52, -1.13)] {
+                let got = sv.sampling_albedo(x, y);
+                assert!((got - want).abs() < 1e-3, "{got} vs {want}");
             }
         }
     }
