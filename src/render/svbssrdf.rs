@@ -1496,6 +1496,22 @@ mod tests {
         }
     }
 
+    /// An n × n checker of single 0.05 MFP texels, 0.2 and 0.8, and a
+    /// density map of 3 on the 0.8 texels and 1 on the 0.2 ones.
+    fn fine_checker(n: usize) -> (TexelMap, TexelMap) {
+        let checker: Vec<f64> = (0..n * n)
+            .map(|k| if (k / n + k % n) % 2 == 0 { 0.2 } else { 0.8 })
+            .collect();
+        let rho = checker
+            .iter()
+            .map(|&a| if a > 0.5 { 3.0 } else { 1.0 })
+            .collect();
+        (
+            TexelMap::new(n, n, 0.05, checker).unwrap(),
+            TexelMap::new(n, n, 0.05, rho).unwrap(),
+        )
+    }
+
     /// Each albedo space aggregates its own mean: on a fine checker of 0.2
     /// and 0.8 under a wide kernel with b = 0, α_t is 0.5 (linear),
     /// √(0.2·0.8) = 0.4 (log), 1 − √(0.8·0.2) = 0.6 (absorption) and
@@ -1505,12 +1521,7 @@ mod tests {
     #[test]
     fn each_albedo_space_aggregates_its_mean() {
         let (_, t) = basis();
-        let n = 400;
-        let tau = 0.05;
-        let checker: Vec<f64> = (0..n * n)
-            .map(|k| if (k / n + k % n) % 2 == 0 { 0.2 } else { 0.8 })
-            .collect();
-        let albedo = TexelMap::new(n, n, tau, checker).unwrap();
+        let (albedo, rho) = fine_checker(400);
         let kernel = Gmm {
             components: vec![Component {
                 weight: 1.0,
@@ -1523,18 +1534,6 @@ mod tests {
             xi: [0.0, 0.0],
             axis: [1.0, 0.0],
         };
-        // Density 3 on the 0.8 texels, 1 on the 0.2 ones.
-        let rho = TexelMap::new(
-            n,
-            n,
-            tau,
-            albedo
-                .values
-                .iter()
-                .map(|&a| if a > 0.5 { 3.0 } else { 1.0 })
-                .collect(),
-        )
-        .unwrap();
         let mean =
             |w: f64, f: fn(f64) -> f64, inv: fn(f64) -> f64| inv((f(0.2) + w * f(0.8)) / (1.0 + w));
         let log = |a: f64| a.ln();
@@ -1587,22 +1586,7 @@ mod tests {
     #[test]
     fn sampling_albedo_is_the_local_mean() {
         let (_, t) = basis();
-        let n = 200;
-        let checker: Vec<f64> = (0..n * n)
-            .map(|k| if (k / n + k % n) % 2 == 0 { 0.2 } else { 0.8 })
-            .collect();
-        let albedo = TexelMap::new(n, n, 0.05, checker).unwrap();
-        let heavy = TexelMap::new(
-            n,
-            n,
-            0.05,
-            albedo
-                .values
-                .iter()
-                .map(|&a| if a > 0.5 { 3.0 } else { 1.0 })
-                .collect(),
-        )
-        .unwrap();
+        let (albedo, heavy) = fine_checker(200);
         let constant = TexelMap::new(1, 1, 0.05, vec![0.7]).unwrap();
         for (map, density, want) in [
             (constant, Density::Constant(2.0), 0.7),
