@@ -1500,7 +1500,13 @@ mod tests {
     /// density map of 3 on the 0.8 texels and 1 on the 0.2 ones.
     fn fine_checker(n: usize) -> (TexelMap, TexelMap) {
         let checker: Vec<f64> = (0..n * n)
-            .map(|k| if (k / n + k % n) % 2 == 0 { 0.2 } else { 0.8 })
+            .map(|k| {
+                if (k / n + k % n).is_multiple_of(2) {
+                    0.2
+                } else {
+                    0.8
+                }
+            })
             .collect();
         let rho = checker
             .iter()
