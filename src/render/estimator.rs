@@ -636,19 +636,18 @@ fn pixel(
 /// Σ_k(n_k/n)²·s², with s² = Σ_k(m_k − m̄)²/(R − 1) over the R non-empty
 /// blocks (s²/R for equal blocks). (0, 0) without samples.
 fn randomized_mean(blocks: &[Group], c: usize) -> (f64, f64) {
-    let used: Vec<&Group> = blocks.iter().filter(|b| b.n > 0.0).collect();
-    let n: f64 = used.iter().map(|b| b.n).sum();
+    let used = || blocks.iter().filter(|b| b.n > 0.0);
+    let (r, n) = used().fold((0.0, 0.0), |(r, n), b| (r + 1.0, n + b.n));
     if n == 0.0 {
         return (0.0, 0.0);
     }
-    let mean = used.iter().map(|b| b.sum[c]).sum::<f64>() / n;
-    if used.len() < 2 {
+    let mean = used().map(|b| b.sum[c]).sum::<f64>() / n;
+    if r < 2.0 {
         return (mean, 0.0);
     }
-    let ms: Vec<f64> = used.iter().map(|b| b.sum[c] / b.n).collect();
-    let mbar = ms.iter().sum::<f64>() / ms.len() as f64;
-    let s2 = ms.iter().map(|m| (m - mbar).powi(2)).sum::<f64>() / (ms.len() - 1) as f64;
-    let w2: f64 = used.iter().map(|b| (b.n / n).powi(2)).sum();
+    let mbar = used().map(|b| b.sum[c] / b.n).sum::<f64>() / r;
+    let s2 = used().map(|b| (b.sum[c] / b.n - mbar).powi(2)).sum::<f64>() / (r - 1.0);
+    let w2: f64 = used().map(|b| (b.n / n).powi(2)).sum();
     (mean, s2 * w2)
 }
 

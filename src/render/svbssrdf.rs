@@ -986,6 +986,7 @@ impl SvBssrdf {
         frame: &Frame,
         kernel: &Gmm,
     ) -> ([f64; N], f64) {
+        debug_assert!((1..=2).contains(&N), "one or two aggregands");
         let mut wsum = 0.0;
         let mut den = 0.0;
         let mut num = [0.0; N];
