@@ -62,6 +62,7 @@
 //!   a pure function of `(seed, i)` ([`forward::rng`]); results never depend on
 //!   the thread count or on sharding.
 
+pub mod design;
 pub mod doc;
 pub mod error;
 pub mod fastmath;

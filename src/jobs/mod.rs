@@ -15,6 +15,7 @@
 
 pub mod compare;
 pub mod demo;
+pub mod design;
 pub mod experiments;
 pub mod extend;
 pub mod fit_kernels;

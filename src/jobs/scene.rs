@@ -992,6 +992,27 @@ fn marble_pattern(spacing: f64, width: f64, angle: f64, seed: u64, x: f64, y: f6
     (1.0 - dist / width).max(0.0)
 }
 
+/// Loads an image file as 1 or 3 texel maps of size `texel`: `.npy`
+/// (`(ny, nx)` or `(ny, nx, 3)`, float64 or float32, linear), `.exr`
+/// (linear) or `.png` (8 or 16 bit, decoded from sRGB); row 0 is +y.
+pub fn load_image(file: &Path, texel: f64) -> Result<Vec<TexelMap>> {
+    let ext = file
+        .extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or_default()
+        .to_ascii_lowercase();
+    match ext.as_str() {
+        "npy" => load_npy(file, texel),
+        "exr" => load_exr(file, texel),
+        "png" => load_png(file, texel, true),
+        _ => Err(Error::format(
+            file,
+            "(extension)",
+            "expected a .png (sRGB), .exr or .npy image",
+        )),
+    }
+}
+
 /// Loads the first layer of an OpenEXR file: channels R, G, B (3 maps), or
 /// Y, or the only channel (1 map); row 0 of the image is +y.
 fn load_exr(file: &Path, texel: f64) -> Result<Vec<TexelMap>> {

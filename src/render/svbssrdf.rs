@@ -356,6 +356,35 @@ impl BasisTable {
             .sum()
     }
 
+    /// (Rₘ(r; α)/α², its derivative in α) at unit density (1/MFP²): the
+    /// table's interpolant is linear in x = √(1 − α) between nodes, so the
+    /// derivative is exact for it (dx/dα = −1/(2x); x floored at 1e-6).
+    pub fn multi_over_alpha2_grad(&self, r: f64, alpha: f64) -> (f64, f64) {
+        let x = albedo_coordinate(alpha);
+        let u = x * (TABLE_NODES - 1) as f64;
+        let i = (u as usize).min(TABLE_NODES - 2);
+        let (f, k) = (u - i as f64, self.k);
+        let n0 = &self.nodes[i * 2 * k..(i + 1) * 2 * k];
+        let n1 = &self.nodes[(i + 1) * 2 * k..(i + 2) * 2 * k];
+        let du_dalpha = -0.5 * (TABLE_NODES - 1) as f64 / x.max(1e-6);
+        // Exponents ln A − B r and their u-derivatives, four per SIMD
+        // exponential ([`exp4`]); padding lanes at −∞ (e^−∞ = 0).
+        let (mut v, mut dv) = (0.0, 0.0);
+        for lane in (0..k).step_by(4) {
+            let mut ex = [f64::NEG_INFINITY; 4];
+            let mut de = [0.0; 4];
+            for (o, j) in (lane..(lane + 4).min(k)).enumerate() {
+                let (dl, db) = (n1[j] - n0[j], n1[k + j] - n0[k + j]);
+                ex[o] = (n0[j] + f * dl) - (n0[k + j] + f * db) * r;
+                de[o] = dl - r * db;
+            }
+            let e = exp4(wide::f64x4::from(ex));
+            v += e.reduce_add();
+            dv += (e * wide::f64x4::from(de)).reduce_add();
+        }
+        (v, dv * du_dalpha)
+    }
+
     /// (R₁(r; 1), Rₘ(r; α)/α²) at unit density (1/MFP²), r ≥ [`R_MIN`]:
     /// both mixtures' exponentials in f64x4 lanes ([`exp4`]) when the model
     /// has ≤ 4 single and ≤ 8 multiple components (the shipped one has 4

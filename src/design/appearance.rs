@@ -1,0 +1,721 @@
+//! The appearance of an albedo map under an SV-BSSRDF model, and its exact
+//! gradient with respect to every texel.
+//!
+//! # The estimate
+//! The appearance at texel centre x_e is the diffuse reflectance
+//! M(x_e) = ∫ E(x_i)·S(x_i, x_e) dx_i under unit irradiance E (uniform over
+//! the plane, or 1 inside a disk at the origin). It is estimated with one
+//! fixed set of K entry offsets δ_k shared by every texel (x_i = x_e + δ_k):
+//! K_r rings stratified in the radial CDF of the balanced mixture of the
+//! homogeneous profiles at two albedos (the map's lower and upper ends, so
+//! that both short and long transport are covered), K_φ angles per ring,
+//! each ring turned by the golden ratio. Weights W_k = 1/(K·p(δ_k)) with p
+//! the mixture's area density (1/MFP²). The same offsets everywhere make
+//! M a smooth, deterministic function of α: its quadrature error is one
+//! stencil's, not per-texel noise that an optimiser would learn to cancel.
+//!
+//! # The models (per channel, unit density)
+//! * `point`: S = R(d; α_e) = α_e R₁(d) + α_e² Rₘ(d; α_e)/α_e².
+//! * `factorized`: S = √(R(d; α_i)·R(d; α_e)).
+//! * `learned`: the split form of the renderer, S = α_i R₁(d) +
+//!   l_i·l_e·Rₘ(d; α_t)/α_t², with α_t the linear mean of α under the
+//!   all-vertex kernel and l_e (l_i) under the last- (first-) vertex
+//!   kernel, l_i = α_i without a first-vertex model; point albedos are the
+//!   texel under the point. The kernels' *shapes* are the meta-model's at
+//!   an **anchor** map A, held fixed while α varies: the vertex kernels at
+//!   (A_i + A_e)/2, the all-vertex kernel at the anchor's first-pass α_t
+//!   (the renderer's two passes), on a grid of [`ANCHOR_BINS`] albedos
+//!   uniform in √(1 − α). With the shapes fixed, M is a smooth function of
+//!   α whose gradient this module computes exactly; the designer
+//!   re-anchors at its current map between rounds.
+//!
+//! The Gaussian means read a [`BlurStack`]; the gradient runs the reads
+//! backwards into the stack's adjoint buffer and then through its
+//! transposed stencils. Sums are taken over a fixed number of pixel blocks
+//! in a fixed order, so results do not depend on the thread count.
+
+use super::stack::BlurStack;
+use crate::error::{Error, Result};
+use crate::metamodel::basis::BasisModel;
+use crate::metamodel::kernel::Gmm;
+use crate::metamodel::meta::MetaModelFile;
+use crate::render::svbssrdf::{BasisTable, Method, R_MIN};
+use rayon::prelude::*;
+use std::f64::consts::PI;
+use std::sync::Arc;
+
+/// Albedos at which the kernel shapes are tabulated (uniform in √(1 − α)
+/// over the meta-model's range).
+pub const ANCHOR_BINS: usize = 64;
+
+/// Pixel blocks of the parallel sums (fixed: results independent of threads).
+const BLOCKS: usize = 8;
+
+/// The light over the texture.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Illumination {
+    /// Unit irradiance over the whole plane.
+    Uniform,
+    /// Unit irradiance inside a disk of this radius (MFP) at the origin.
+    Disk(f64),
+}
+
+impl Illumination {
+    /// `uniform` or `disk:R` (R in MFP, > 0).
+    pub fn parse(s: &str) -> Result<Self> {
+        if s == "uniform" {
+            return Ok(Illumination::Uniform);
+        }
+        match s.strip_prefix("disk:").map(str::parse::<f64>) {
+            Some(Ok(r)) if r > 0.0 && r.is_finite() => Ok(Illumination::Disk(r)),
+            _ => Err(Error::param(
+                "illumination",
+                s,
+                "uniform or disk:R with R > 0 (MFP)",
+            )),
+        }
+    }
+
+    pub fn name(&self) -> String {
+        match self {
+            Illumination::Uniform => "uniform".into(),
+            Illumination::Disk(r) => format!("disk:{r}"),
+        }
+    }
+
+    #[inline]
+    fn lit(&self, x: [f64; 2]) -> bool {
+        match self {
+            Illumination::Uniform => true,
+            Illumination::Disk(r) => x[0] * x[0] + x[1] * x[1] <= r * r,
+        }
+    }
+}
+
+/// How the appearance is estimated.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Quadrature {
+    /// Rings K_r (radii).
+    pub rings: usize,
+    /// Angles per ring K_φ.
+    pub angles: usize,
+}
+
+impl Default for Quadrature {
+    fn default() -> Self {
+        Quadrature {
+            rings: 12,
+            angles: 2,
+        }
+    }
+}
+
+/// One entry offset of the quadrature.
+#[derive(Clone, Copy, Debug)]
+struct Offset {
+    delta: [f64; 2],
+    d: f64,
+    weight: f64,
+    /// R₁(d) at unit density.
+    single: f64,
+}
+
+/// One Gaussian read of a kernel component planned for an offset: its
+/// centre relative to x_e (MFP), its stack levels and its share w_c/Σw.
+#[derive(Clone, Copy, Debug)]
+struct Read {
+    shift: [f64; 2],
+    level: (usize, f64),
+    share: f64,
+}
+
+/// The reads of one kernel class per (offset, bin):
+/// `reads[start[i]..start[i + 1]]` for i = offset·[`ANCHOR_BINS`] + bin.
+#[derive(Debug, Default)]
+struct Plans {
+    reads: Vec<Read>,
+    start: Vec<usize>,
+}
+
+impl Plans {
+    #[inline]
+    fn get(&self, offset: usize, bin: u16) -> &[Read] {
+        let i = offset * ANCHOR_BINS + bin as usize;
+        &self.reads[self.start[i]..self.start[i + 1]]
+    }
+}
+
+/// The kernel shapes per (offset, anchor bin), as planned reads.
+#[derive(Debug)]
+struct Kernels {
+    all: Plans,
+    last: Plans,
+    first: Option<Plans>,
+    y_range: [f64; 2],
+}
+
+impl Kernels {
+    fn bin(&self, alpha: f64) -> u16 {
+        let y = (1.0 - alpha.clamp(0.0, 1.0)).sqrt();
+        let [y0, y1] = self.y_range;
+        let f = ((y - y0) / (y1 - y0)).clamp(0.0, 1.0);
+        (f * (ANCHOR_BINS - 1) as f64).round() as u16
+    }
+}
+
+/// The kernel bins of one channel's anchor: per (texel, offset), the bin of
+/// the vertex kernels and of the all-vertex kernel.
+#[derive(Clone, Debug, Default)]
+pub struct Anchor {
+    bins: Vec<[u16; 2]>,
+}
+
+/// The appearance model of one texture grid ([module docs](self)).
+#[derive(Debug)]
+pub struct Appearance {
+    method: Method,
+    basis: Arc<BasisTable>,
+    nx: usize,
+    ny: usize,
+    texel: f64,
+    illumination: Illumination,
+    offsets: Vec<Offset>,
+    kernels: Option<Kernels>,
+    /// The stack's grid (values unused): cloned per evaluation.
+    pub(crate) grid: Option<BlurStack>,
+}
+
+impl Appearance {
+    /// The model `method` (`point`, `factorized` or `learned`; `learned`
+    /// needs `meta`) on a grid of `nx × ny` texels of size `texel` (MFP),
+    /// its offsets drawn for albedos in [`alpha_lo`, `alpha_hi`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        method: Method,
+        basis: &BasisModel,
+        meta: Option<&MetaModelFile>,
+        nx: usize,
+        ny: usize,
+        texel: f64,
+        illumination: Illumination,
+        [alpha_lo, alpha_hi]: [f64; 2],
+        quadrature: &Quadrature,
+    ) -> Result<Self> {
+        if !matches!(method, Method::Point | Method::Factorized | Method::Learned) {
+            return Err(Error::param(
+                "method",
+                method.name(),
+                "point, factorized or learned",
+            ));
+        }
+        if nx == 0 || ny == 0 || !(texel > 0.0 && texel.is_finite()) {
+            return Err(Error::param(
+                "texture",
+                format!("{nx}x{ny}, τ = {texel}"),
+                "non-empty, τ > 0",
+            ));
+        }
+        if quadrature.rings == 0 || quadrature.angles == 0 {
+            return Err(Error::param(
+                "quadrature",
+                format!("{quadrature:?}"),
+                ">= 1 ring and angle",
+            ));
+        }
+        let offsets = offsets(basis, [alpha_lo, alpha_hi], quadrature);
+        let table = Arc::new(BasisTable::new(basis));
+        let offsets: Vec<Offset> = offsets
+            .into_iter()
+            .map(|(delta, weight)| {
+                let d = delta[0].hypot(delta[1]);
+                Offset {
+                    delta,
+                    d,
+                    weight,
+                    single: table.parts(d.max(R_MIN), 0.5).0,
+                }
+            })
+            .collect();
+        let (kernels, grid) = match (method, meta) {
+            (Method::Learned, Some(meta)) => {
+                let (kernels, grid) = tabulate(meta, &offsets, nx, ny, texel);
+                (Some(kernels), Some(grid))
+            }
+            (Method::Learned, None) => {
+                return Err(Error::param("method", "learned", "a meta-model"));
+            }
+            _ => (None, None),
+        };
+        Ok(Appearance {
+            method,
+            basis: table,
+            nx,
+            ny,
+            texel,
+            illumination,
+            offsets,
+            kernels,
+            grid,
+        })
+    }
+
+    /// Number of entry offsets K.
+    pub fn samples(&self) -> usize {
+        self.offsets.len()
+    }
+
+    /// Texels (ny · nx).
+    pub fn len(&self) -> usize {
+        self.nx * self.ny
+    }
+
+    /// Whether the grid is empty (never: construction refuses it).
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The method.
+    pub fn method(&self) -> Method {
+        self.method
+    }
+
+    /// The centre of texel `e` (row-major) in MFP.
+    #[inline]
+    fn centre(&self, e: usize) -> [f64; 2] {
+        let (i, j) = (e / self.nx, e % self.nx);
+        [
+            -0.5 * self.nx as f64 * self.texel + (j as f64 + 0.5) * self.texel,
+            0.5 * self.ny as f64 * self.texel - (i as f64 + 0.5) * self.texel,
+        ]
+    }
+
+    /// The texel under x (edges extended), row-major.
+    #[inline]
+    fn texel_of(&self, x: [f64; 2]) -> usize {
+        let j =
+            ((x[0] / self.texel + 0.5 * self.nx as f64).floor().max(0.0) as usize).min(self.nx - 1);
+        let i =
+            ((0.5 * self.ny as f64 - x[1] / self.texel).floor().max(0.0) as usize).min(self.ny - 1);
+        i * self.nx + j
+    }
+
+    /// The stack of map `alpha` (learned), built.
+    fn stack(&self, alpha: &[f64]) -> Option<BlurStack> {
+        self.grid.as_ref().map(|g| {
+            let mut s = g.clone();
+            s.build(alpha);
+            s
+        })
+    }
+
+    /// The kernel bins of anchor map `a` (learned; empty otherwise).
+    pub fn anchor(&self, a: &[f64]) -> Anchor {
+        assert_eq!(a.len(), self.len(), "anchor shape");
+        let (Some(k), Some(stack)) = (&self.kernels, self.stack(a)) else {
+            return Anchor::default();
+        };
+        let bins = (0..self.len())
+            .into_par_iter()
+            .flat_map_iter(|e| {
+                let xe = self.centre(e);
+                let stack = &stack;
+                self.offsets.iter().enumerate().map(move |(o, off)| {
+                    let xi = [xe[0] + off.delta[0], xe[1] + off.delta[1]];
+                    let b0 = k.bin(0.5 * (a[self.texel_of(xi)] + a[e]));
+                    let t = mean(stack, xe, k.all.get(o, b0));
+                    [b0, k.bin(t)]
+                })
+            })
+            .collect();
+        Anchor { bins }
+    }
+
+    /// The appearance M of map `alpha` (row-major, one channel) under
+    /// `anchor` (from [`Self::anchor`]; ignored by `point` and
+    /// `factorized`).
+    pub fn appearance(&self, alpha: &[f64], anchor: &Anchor) -> Vec<f64> {
+        assert_eq!(alpha.len(), self.len(), "map shape");
+        let stack = self.stack(alpha);
+        (0..self.len())
+            .into_par_iter()
+            .map(|e| self.pixel(alpha, stack.as_ref(), anchor, e, None))
+            .collect()
+    }
+
+    /// M of map `alpha` with what its gradient needs ([`Self::gradient`]).
+    pub fn linearize(&self, alpha: &[f64], anchor: &Anchor) -> Linearization {
+        assert_eq!(alpha.len(), self.len(), "map shape");
+        let stack = self.stack(alpha);
+        let n_k = self.offsets.len();
+        let mut partials = vec![[0.0; 5]; self.len() * n_k];
+        let m = partials
+            .par_chunks_mut(n_k)
+            .enumerate()
+            .map(|(e, p)| self.pixel(alpha, stack.as_ref(), anchor, e, Some(p)))
+            .collect();
+        Linearization { m, partials, stack }
+    }
+
+    /// The gradient Σ_e g_e ∂M_e/∂α (row-major) at the linearized map for
+    /// the weights `g` (for a least-squares objective, ∂F/∂M).
+    pub fn gradient(&self, lin: &Linearization, anchor: &Anchor, g: &[f64]) -> Vec<f64> {
+        let n = self.len();
+        assert_eq!(g.len(), n, "weights shape");
+        let n_k = self.offsets.len();
+        let stack = lin.stack.as_ref();
+        let nodes_len = stack.map_or(0, |s| s.len());
+        let per = n.div_ceil(BLOCKS);
+        let parts: Vec<(Vec<f64>, Vec<f64>)> = (0..BLOCKS)
+            .into_par_iter()
+            .map(|block| {
+                let mut texels = vec![0.0; n];
+                let mut nodes = vec![0.0; nodes_len];
+                for e in block * per..((block + 1) * per).min(n) {
+                    if g[e] == 0.0 {
+                        continue;
+                    }
+                    let xe = self.centre(e);
+                    for (o, off) in self.offsets.iter().enumerate() {
+                        let [c_i, c_e, c_t, c_le, c_li] = lin.partials[e * n_k + o];
+                        let w = g[e];
+                        let xi = [xe[0] + off.delta[0], xe[1] + off.delta[1]];
+                        texels[self.texel_of(xi)] += w * c_i;
+                        texels[e] += w * c_e;
+                        if let (Some(k), Some(stack)) = (&self.kernels, stack) {
+                            let [b0, b1] = anchor.bins[e * n_k + o];
+                            if c_t != 0.0 {
+                                scatter(stack, xe, k.all.get(o, b1), w * c_t, &mut nodes);
+                            }
+                            scatter(stack, xe, k.last.get(o, b0), w * c_le, &mut nodes);
+                            if let Some(f) = &k.first {
+                                scatter(stack, xe, f.get(o, b0), w * c_li, &mut nodes);
+                            }
+                        }
+                    }
+                }
+                (texels, nodes)
+            })
+            .collect();
+        let mut texels = vec![0.0; n];
+        let mut nodes = vec![0.0; nodes_len];
+        for (t, m) in &parts {
+            for (a, b) in texels.iter_mut().zip(t) {
+                *a += b;
+            }
+            for (a, b) in nodes.iter_mut().zip(m) {
+                *a += b;
+            }
+        }
+        if let Some(s) = stack {
+            s.adjoint(&nodes, &mut texels);
+        }
+        texels
+    }
+
+    /// M at texel `e`; with `partials`, also each offset's weighted partial
+    /// derivatives of its term W_k·S_k: with respect to the point albedo
+    /// under x_i and under x_e, and to the means α_t, l_e and l_i.
+    fn pixel(
+        &self,
+        alpha: &[f64],
+        stack: Option<&BlurStack>,
+        anchor: &Anchor,
+        e: usize,
+        mut partials: Option<&mut [[f64; 5]]>,
+    ) -> f64 {
+        let xe = self.centre(e);
+        let ae = alpha[e];
+        let b = &*self.basis;
+        let n_k = self.offsets.len();
+        let mut m = 0.0;
+        for (o, off) in self.offsets.iter().enumerate() {
+            let xi = [xe[0] + off.delta[0], xe[1] + off.delta[1]];
+            if !self.illumination.lit(xi) {
+                continue;
+            }
+            let ai = alpha[self.texel_of(xi)];
+            let r = off.d.max(R_MIN);
+            let w = off.weight;
+            let profile = |a: f64| {
+                let (mm, dm) = b.multi_over_alpha2_grad(r, a);
+                let v = a * off.single + a * a * mm;
+                (v, off.single + 2.0 * a * mm + a * a * dm)
+            };
+            let (s, d) = match self.method {
+                Method::Point => {
+                    let (s, ds) = profile(ae);
+                    (s, [0.0, ds, 0.0, 0.0, 0.0])
+                }
+                Method::Factorized => {
+                    let ((ri, dri), (re, dre)) = (profile(ai), profile(ae));
+                    let s = (ri * re).max(0.0).sqrt();
+                    let h = if s > 0.0 { 0.5 / s } else { 0.0 };
+                    (s, [h * dri * re, h * ri * dre, 0.0, 0.0, 0.0])
+                }
+                _ => {
+                    let (Some(k), Some(stack)) = (&self.kernels, stack) else {
+                        unreachable!("learned is built with its kernels")
+                    };
+                    let [b0, b1] = anchor.bins[e * n_k + o];
+                    let at = mean(stack, xe, k.all.get(o, b1));
+                    let le = mean(stack, xe, k.last.get(o, b0));
+                    let first = k.first.as_ref().map(|f| f.get(o, b0));
+                    let li = first.map_or(ai, |f| mean(stack, xe, f));
+                    let t = at.clamp(0.0, 1.0);
+                    let (mm, dm) = b.multi_over_alpha2_grad(r, t);
+                    let s = ai * off.single + li * le * mm;
+                    // l_i is the point albedo without a first-vertex model.
+                    let (c_i, c_li) = match first {
+                        None => (off.single + le * mm, 0.0),
+                        Some(_) => (off.single, le * mm),
+                    };
+                    let c_t = if at == t { li * le * dm } else { 0.0 };
+                    (s, [c_i, 0.0, c_t, li * mm, c_li])
+                }
+            };
+            m += w * s;
+            if let Some(p) = partials.as_deref_mut() {
+                p[o] = d.map(|v| w * v);
+            }
+        }
+        m
+    }
+}
+
+/// The appearance of one map with its partial derivatives per (texel,
+/// offset), from [`Appearance::linearize`].
+#[derive(Debug)]
+pub struct Linearization {
+    /// M per texel.
+    pub m: Vec<f64>,
+    partials: Vec<[f64; 5]>,
+    stack: Option<BlurStack>,
+}
+
+/// The planned mean Σ_c share_c·(G_σc ∗ α)(x_e + shift_c).
+#[inline]
+fn mean(stack: &BlurStack, xe: [f64; 2], reads: &[Read]) -> f64 {
+    reads
+        .iter()
+        .map(|r| {
+            let taps = stack.taps_at([xe[0] + r.shift[0], xe[1] + r.shift[1]], r.level);
+            r.share * stack.read(&taps)
+        })
+        .sum()
+}
+
+/// Adds g·∂(planned mean)/∂node into `nodes`.
+#[inline]
+fn scatter(stack: &BlurStack, xe: [f64; 2], reads: &[Read], g: f64, nodes: &mut [f64]) {
+    for r in reads {
+        let taps = stack.taps_at([xe[0] + r.shift[0], xe[1] + r.shift[1]], r.level);
+        for (n, w) in taps {
+            nodes[n as usize] += g * r.share * w;
+        }
+    }
+}
+
+/// The offsets and weights of the quadrature ([module docs](self)).
+fn offsets(basis: &BasisModel, [lo, hi]: [f64; 2], q: &Quadrature) -> Vec<([f64; 2], f64)> {
+    let albedos = [lo.clamp(0.05, 0.999), hi.clamp(0.05, 0.999)];
+    let rd = albedos.map(|a| basis.r_d(a));
+    // The mixture's radial density (per unit r) and CDF, each part normalised.
+    let pdf = |r: f64| {
+        0.5 * (0..2)
+            .map(|i| basis.density(r, albedos[i]) / rd[i])
+            .sum::<f64>()
+    };
+    let cdf = |r: f64| {
+        0.5 * (0..2)
+            .map(|i| basis.cdf(r, albedos[i]) / rd[i])
+            .sum::<f64>()
+    };
+    let k = (q.rings * q.angles) as f64;
+    let golden = 0.5 * (5f64.sqrt() - 1.0);
+    let mut out = Vec::with_capacity(q.rings * q.angles);
+    for ring in 0..q.rings {
+        let u = (ring as f64 + 0.5) / q.rings as f64;
+        // Bisection on the CDF over [0, 1000] MFP (to 1e-12 MFP).
+        let (mut a, mut b) = (0.0, 1000.0);
+        while b - a > 1e-12 * (1.0 + b) {
+            let m = 0.5 * (a + b);
+            if cdf(m) < u {
+                a = m;
+            } else {
+                b = m;
+            }
+        }
+        let r = 0.5 * (a + b);
+        let area_pdf = pdf(r) / (2.0 * PI * r);
+        let turn = (ring as f64 * golden).fract();
+        for j in 0..q.angles {
+            let phi = 2.0 * PI * (j as f64 + turn) / q.angles as f64;
+            out.push(([r * phi.cos(), r * phi.sin()], 1.0 / (k * area_pdf)));
+        }
+    }
+    out
+}
+
+/// The kernel shapes per (offset, bin) from the meta-model, planned on
+/// the stack that covers their widths.
+fn tabulate(
+    meta: &MetaModelFile,
+    offsets: &[Offset],
+    nx: usize,
+    ny: usize,
+    texel: f64,
+) -> (Kernels, BlurStack) {
+    let [a0, a1] = meta.all.alpha_range;
+    let y_range = [(1.0 - a1).sqrt(), (1.0 - a0).sqrt()];
+    let alpha_of = |b: usize| {
+        let y = y_range[0] + (y_range[1] - y_range[0]) * b as f64 / (ANCHOR_BINS - 1) as f64;
+        1.0 - y * y
+    };
+    let shapes = |m: &crate::metamodel::meta::MetaModel| -> Vec<Gmm> {
+        offsets
+            .iter()
+            .flat_map(|o| (0..ANCHOR_BINS).map(move |b| m.eval(o.d, alpha_of(b), 1.0).gmm))
+            .collect()
+    };
+    let (all, last) = (shapes(&meta.all), shapes(&meta.last));
+    let first = meta.first.as_ref().map(shapes);
+    let sigma_max = all
+        .iter()
+        .chain(&last)
+        .chain(first.iter().flatten())
+        .flat_map(|g| g.components.iter().map(|c| c.sigma))
+        .fold(0.0, f64::max);
+    let stack = BlurStack::new(nx, ny, texel, sigma_max);
+    let plan = |gmms: &[Gmm]| -> Plans {
+        let mut p = Plans::default();
+        p.start.push(0);
+        for (i, g) in gmms.iter().enumerate() {
+            let off = &offsets[i / ANCHOR_BINS];
+            // The pair frame: origin x_i = x_e + δ, axis toward x_e.
+            let [ux, uy] = if off.d > 0.0 {
+                [-off.delta[0] / off.d, -off.delta[1] / off.d]
+            } else {
+                [1.0, 0.0]
+            };
+            let total: f64 = g.components.iter().map(|c| c.weight).sum();
+            for c in &g.components {
+                p.reads.push(Read {
+                    shift: [
+                        off.delta[0] + c.t * ux - c.s * uy,
+                        off.delta[1] + c.t * uy + c.s * ux,
+                    ],
+                    level: stack.level_of(c.sigma),
+                    share: c.weight / total,
+                });
+            }
+            p.start.push(p.reads.len());
+        }
+        p
+    };
+    let kernels = Kernels {
+        all: plan(&all),
+        last: plan(&last),
+        first: first.as_deref().map(plan),
+        y_range,
+    };
+    (kernels, stack)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::forward::rng::PathRng;
+
+    fn model(
+        method: Method,
+        nx: usize,
+        ny: usize,
+        light: Illumination,
+        q: &Quadrature,
+    ) -> Appearance {
+        let basis = crate::testing::shipped_basis();
+        let meta = crate::testing::shipped_meta();
+        Appearance::new(
+            method,
+            &basis,
+            Some(&meta),
+            nx,
+            ny,
+            0.1,
+            light,
+            [0.3, 0.95],
+            q,
+        )
+        .unwrap()
+    }
+
+    fn noise(n: usize, seed: u64) -> Vec<f64> {
+        let mut rng = PathRng::new(seed, 0);
+        (0..n).map(|_| 0.3 + 0.6 * rng.uniform()).collect()
+    }
+
+    #[test]
+    fn gradients_match_central_differences() {
+        for (method, light) in [
+            (Method::Point, Illumination::Uniform),
+            (Method::Factorized, Illumination::Uniform),
+            (Method::Learned, Illumination::Uniform),
+            (Method::Learned, Illumination::Disk(0.6)),
+        ] {
+            let (nx, ny) = (9, 7);
+            let q = Quadrature {
+                rings: 6,
+                angles: 3,
+            };
+            let m = model(method, nx, ny, light, &q);
+            let alpha = noise(nx * ny, 3);
+            let anchor = m.anchor(&alpha);
+            let g = noise(nx * ny, 4)
+                .iter()
+                .map(|v| v - 0.6)
+                .collect::<Vec<_>>();
+            let f = |a: &[f64]| -> f64 {
+                m.appearance(a, &anchor)
+                    .iter()
+                    .zip(&g)
+                    .map(|(x, y)| x * y)
+                    .sum()
+            };
+            let grad = m.gradient(&m.linearize(&alpha, &anchor), &anchor, &g);
+            let scale = grad.iter().fold(0.0f64, |s, v| s.max(v.abs()));
+            assert!(scale > 0.0, "{method:?}: zero gradient");
+            for t in [0, 5, 31, 40, nx * ny - 1] {
+                let h = 1e-6;
+                let (mut up, mut down) = (alpha.clone(), alpha.clone());
+                up[t] += h;
+                down[t] -= h;
+                let fd = (f(&up) - f(&down)) / (2.0 * h);
+                assert!(
+                    (fd - grad[t]).abs() <= 1e-6 * scale,
+                    "{method:?} {light:?} texel {t}: adjoint {} vs central difference {fd}",
+                    grad[t]
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn a_homogeneous_map_looks_like_its_reflectance() {
+        // The quadrature integrates the homogeneous profile: M = R_d(α)
+        // within 1 % for albedos inside the offsets' range.
+        let basis = crate::testing::shipped_basis();
+        for method in [Method::Point, Method::Factorized, Method::Learned] {
+            let m = model(method, 5, 5, Illumination::Uniform, &Quadrature::default());
+            for a in [0.3, 0.6, 0.9, 0.95] {
+                let map = vec![a; 25];
+                let anchor = m.anchor(&map);
+                let got = m.appearance(&map, &anchor)[12];
+                let want = basis.r_d(a);
+                assert!(
+                    (got / want - 1.0).abs() < 0.01,
+                    "{method:?} α = {a}: {got} vs R_d {want}"
+                );
+            }
+        }
+    }
+}

@@ -1,0 +1,627 @@
+//! `svkernel design`: the albedo map whose appearance after sub-surface
+//! scattering matches a target ([`crate::design`]), its files and report,
+//! and its validation by brute force.
+//!
+//! # Outputs (in `--out DIR`, written only when the design is complete)
+//! * `albedo.npy` (float64, the target's shape), `albedo.png` (sRGB);
+//! * `naive.npy`: the baseline (R_d(α) = target per texel);
+//! * `predicted.npy`: the model's appearance of the designed map;
+//! * `design.json`: settings, objective per iteration, timings, metrics,
+//!   provenance;
+//! * `report.html`: target, albedo maps, appearances, error maps and the
+//!   convergence plot.
+//!
+//! Work in progress (reference checkpoints of a validation) lives in
+//! `.DIR.partial` beside DIR and is resumed from there.
+//!
+//! # Validation
+//! With `validate`, the naive and the designed maps (and the maps designed
+//! with `point` and `factorized` as the forward model) are rendered by the
+//! brute-force reference walk under a collimated disk light that reaches
+//! further beyond the texture than the transport does, and compared with
+//! the target over the texture's interior: relative RMSE (the reference's
+//! own noise subtracted) and the mean CIEDE2000 difference (Sharma, Wu &
+//! Dalal 2005; the `palette` crate) of the linear reflectances read as
+//! linear sRGB.
+
+use super::plot::{Axes, Series, chart};
+use super::render::{RenderOptions, Target, render_scene};
+use super::report::{Block, to_html};
+use super::shipped::Models;
+use super::store::{write_atomic, write_json_atomic, write_npy_atomic};
+use crate::design::appearance::Illumination;
+use crate::design::{self, Design, Settings, Step};
+use crate::error::{Error, Result};
+use crate::forward::maps::TexelMap;
+use crate::forward::medium::Observable;
+use crate::provenance::Provenance;
+use crate::render::scene::{LightKind, Scene};
+use crate::render::svbssrdf::Method;
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// The format tag of `design.json`.
+pub const DESIGN_FORMAT: &str = "svkernel-design";
+
+/// What `svkernel design` does.
+#[derive(Clone, Debug)]
+pub struct DesignOptions {
+    pub target: PathBuf,
+    pub out: PathBuf,
+    pub settings: Settings,
+    /// Reference paths per validated map; `None`: no validation.
+    pub validate: Option<u64>,
+    /// Pixels per side of the validation images (over the texture).
+    pub validate_resolution: usize,
+    pub seed: u64,
+    pub models: Models,
+    pub progress: bool,
+}
+
+/// The errors of one appearance against the target over the interior.
+#[derive(Clone, Debug, Serialize)]
+pub struct Errors {
+    /// √(max(0, Σ(m − t)² − Σσ²)/Σt²).
+    pub rel_rmse: f64,
+    /// Mean CIEDE2000 ΔE₀₀ (noise not removed).
+    pub delta_e00: f64,
+}
+
+/// One validated forward model: the brute-force appearance of its design.
+#[derive(Clone, Debug, Serialize)]
+pub struct ValidationRow {
+    pub method: String,
+    pub designed: Errors,
+    /// Seconds its design took.
+    pub design_s: f64,
+}
+
+/// The brute-force validation.
+#[derive(Clone, Debug, Serialize)]
+pub struct Validation {
+    pub paths: u64,
+    pub resolution: usize,
+    /// The light: a collimated disk of this radius (MFP) at the origin.
+    pub light_radius: f64,
+    /// Pixels within this distance (MFP) of the texture's edge are left out.
+    pub interior_margin: f64,
+    /// Relative standard error of the reference per pixel (RMS).
+    pub reference_noise: f64,
+    pub naive: Errors,
+    pub rows: Vec<ValidationRow>,
+    /// Designed error ÷ naive error for `learned` (relative RMSE).
+    pub improvement: f64,
+    pub seconds: f64,
+}
+
+/// `design.json`.
+#[derive(Clone, Debug, Serialize)]
+pub struct DesignDoc {
+    pub format: String,
+    pub target: PathBuf,
+    /// (ny, nx, channels).
+    pub shape: [usize; 3],
+    pub method: String,
+    pub texel: f64,
+    pub albedo_range: [f64; 2],
+    pub illumination: String,
+    pub warm_start: usize,
+    pub iterations: usize,
+    pub rounds: usize,
+    pub smoothness: f64,
+    pub quadrature: [usize; 2],
+    pub history: Vec<Step>,
+    pub evaluations: usize,
+    pub setup_s: f64,
+    pub solve_s: f64,
+    pub total_s: f64,
+    pub stops: Vec<String>,
+    /// The model's own error (relative RMSE of its appearance against the
+    /// target, whole texture): naive and designed.
+    pub model_naive_rel_rmse: f64,
+    pub model_designed_rel_rmse: f64,
+    pub validation: Option<Validation>,
+    pub provenance: Provenance,
+}
+
+/// Runs `svkernel design` and returns what `design.json` holds.
+pub fn run(opts: &DesignOptions) -> Result<DesignDoc> {
+    let start = Instant::now();
+    let s = &opts.settings;
+    s.validate()?;
+    let maps = super::scene::load_image(&opts.target, s.texel)?;
+    let (nx, ny) = (maps[0].nx, maps[0].ny);
+    let target: Vec<Vec<f64>> = maps.iter().map(|m| m.values.clone()).collect();
+    if let Some(v) = target.iter().flatten().find(|v| !(0.0..=1.0).contains(*v)) {
+        return Err(Error::format(
+            &opts.target,
+            "(values)",
+            format!("{v}: a target holds reflectances in [0, 1]"),
+        ));
+    }
+    let staging = staging_dir(&opts.out)?;
+    let designed = design_with(opts, s, &target, nx, ny)?;
+    let mut validation = None;
+    if let Some(paths) = opts.validate {
+        validation = Some(validate(opts, &staging, &target, nx, ny, &designed, paths)?);
+    }
+    let flat = |v: &[Vec<f64>]| v.iter().flatten().copied().collect::<Vec<f64>>();
+    let t = flat(&target);
+    let doc = DesignDoc {
+        format: DESIGN_FORMAT.into(),
+        target: opts.target.clone(),
+        shape: [ny, nx, target.len()],
+        method: s.method.name().into(),
+        texel: s.texel,
+        albedo_range: s.albedo_range,
+        illumination: s.illumination.name(),
+        warm_start: s.warm_start,
+        iterations: s.iterations,
+        rounds: s.rounds,
+        smoothness: s.smoothness,
+        quadrature: [s.quadrature.rings, s.quadrature.angles],
+        history: designed.history.clone(),
+        evaluations: designed.evaluations,
+        setup_s: designed.setup_seconds,
+        solve_s: designed.solve_seconds,
+        total_s: start.elapsed().as_secs_f64(),
+        stops: designed.stops.clone(),
+        model_naive_rel_rmse: rel_rmse(&flat(&designed.predicted_naive), &t, None),
+        model_designed_rel_rmse: rel_rmse(&flat(&designed.predicted), &t, None),
+        validation,
+        provenance: Provenance::current(),
+    };
+    write_outputs(opts, &staging, &doc, &designed, &target, nx, ny)?;
+    Ok(doc)
+}
+
+/// The staging folder `.NAME.partial` beside `out` (created if missing).
+fn staging_dir(out: &Path) -> Result<PathBuf> {
+    let name = out
+        .file_name()
+        .ok_or_else(|| Error::param("out", out.display(), "a folder name"))?;
+    let parent = out.parent().filter(|p| !p.as_os_str().is_empty());
+    let dir = parent
+        .unwrap_or(Path::new("."))
+        .join(format!(".{}.partial", name.to_string_lossy()));
+    std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
+    Ok(dir)
+}
+
+/// The design with the options' settings, with a progress line.
+fn design_with(
+    opts: &DesignOptions,
+    s: &Settings,
+    target: &[Vec<f64>],
+    nx: usize,
+    ny: usize,
+) -> Result<Design> {
+    let label = format!("design ({})", s.method.name());
+    let task = crate::progress::Task::new(
+        opts.progress,
+        label,
+        ((s.warm_start + s.iterations * 6 / 5) * target.len()) as u64,
+        "evaluations",
+    );
+    let models = &opts.models;
+    let d = design::design(
+        target,
+        nx,
+        ny,
+        &models.basis,
+        Some(&models.meta),
+        s,
+        |done, _| task.set(done as u64),
+    )?;
+    task.finish();
+    Ok(d)
+}
+
+/// √(max(0, Σ(m − t)² − Σσ²)/Σt²) over the texels where `keep` (all if None).
+fn rel_rmse(m: &[f64], t: &[f64], noise: Option<&[f64]>) -> f64 {
+    let se: f64 = m.iter().zip(t).map(|(a, b)| (a - b).powi(2)).sum();
+    let var: f64 = noise.map_or(0.0, |n| n.iter().map(|s| s * s).sum());
+    let norm: f64 = t.iter().map(|b| b * b).sum();
+    ((se - var).max(0.0) / norm).sqrt()
+}
+
+/// Mean CIEDE2000 between per-pixel linear reflectances (1 or 3 channels).
+fn mean_delta_e(a: &[Vec<f64>], b: &[Vec<f64>]) -> f64 {
+    use palette::color_difference::Ciede2000;
+    use palette::{FromColor, Lab, LinSrgb};
+    let lab = |m: &[Vec<f64>], k: usize| -> Lab {
+        let c = |i: usize| m[i.min(m.len() - 1)][k].clamp(0.0, 1.0) as f32;
+        Lab::from_color(LinSrgb::new(c(0), c(1), c(2)))
+    };
+    let n = a[0].len();
+    (0..n)
+        .map(|k| lab(a, k).difference(lab(b, k)) as f64)
+        .sum::<f64>()
+        / n.max(1) as f64
+}
+
+/// Per channel, the mean and the standard error of an image (row-major).
+type Planes = (Vec<Vec<f64>>, Vec<Vec<f64>>);
+
+/// Renders `maps` by brute force on the validation grid: per channel, the
+/// mean and standard error per pixel (row-major `res × res`).
+fn reference_image(
+    opts: &DesignOptions,
+    staging: &Path,
+    tag: &str,
+    maps: &[Vec<f64>],
+    (nx, ny): (usize, usize),
+    (res, half_width, light_radius, paths): (usize, f64, f64, u64),
+) -> Result<Planes> {
+    let s = &opts.settings;
+    let albedo = maps
+        .iter()
+        .map(|m| TexelMap::new(nx, ny, s.texel, m.clone()))
+        .collect::<Result<Vec<_>>>()?;
+    let scene = Scene {
+        name: format!("design-{tag}"),
+        path: opts.target.clone(),
+        source: format!("design validation: {tag}"),
+        eta: opts.models.basis.eta,
+        g: opts.models.meta.g,
+        texel: s.texel,
+        albedo,
+        density: None,
+        light: LightKind::Collimated,
+        light_radius,
+        irradiance: 1.0,
+        resolution: res,
+        half_width,
+        observable: Observable::Exitance,
+        methods: Vec::new(),
+        samples: 1,
+        reference_paths: paths,
+        density_sweep: Vec::new(),
+    };
+    let mut ro = RenderOptions::new(staging.join(tag), opts.models.clone());
+    ro.targets = vec![Target::Reference];
+    ro.seed = opts.seed;
+    ro.analysis = false;
+    ro.checkpoint = Some(staging.join(format!("{tag}.reference")));
+    ro.run.resume = true;
+    ro.run.progress = opts.progress;
+    ro.run.checkpoint_every = std::time::Duration::from_secs(30);
+    let passes = render_scene(&scene, &ro)?;
+    let img = &passes[0].rendered[0].image;
+    let n = res * res;
+    let split = |v: &[f64]| {
+        (0..img.channels)
+            .map(|c| v[c * n..(c + 1) * n].to_vec())
+            .collect()
+    };
+    Ok((split(&img.mean), split(&img.stderr)))
+}
+
+/// The brute-force validation ([module docs](self)).
+fn validate(
+    opts: &DesignOptions,
+    staging: &Path,
+    target: &[Vec<f64>],
+    nx: usize,
+    ny: usize,
+    designed: &Design,
+    paths: u64,
+) -> Result<Validation> {
+    let start = Instant::now();
+    let s = &opts.settings;
+    let side = nx.max(ny);
+    let f = side.div_ceil(opts.validate_resolution.max(1)).max(1);
+    let res = side.div_ceil(f);
+    let half_width = 0.5 * (res * f) as f64 * s.texel;
+    // The light reaches 4 diffusion lengths 1/σ_tr beyond the image, for the
+    // largest albedo of the maps (σ_tr = √(3σ_a σ_t′), unit σ_t).
+    let alpha_max = designed
+        .albedo
+        .iter()
+        .chain(&designed.naive)
+        .flatten()
+        .fold(0.0f64, |a, &b| a.max(b));
+    let g = opts.models.meta.g;
+    let sigma_tr = (3.0 * (1.0 - alpha_max) * (1.0 - alpha_max * g))
+        .sqrt()
+        .max(1e-3);
+    let reach = (4.0 / sigma_tr).min(40.0);
+    let light_radius = match s.illumination {
+        Illumination::Uniform => half_width * std::f64::consts::SQRT_2 + reach,
+        Illumination::Disk(r) => r,
+    };
+    // Target per validation pixel: the mean of its texels.
+    let h = 2.0 * half_width / res as f64;
+    let margin = 0.5;
+    let mut keep = Vec::new();
+    let mut target_px: Vec<Vec<f64>> = vec![Vec::new(); target.len()];
+    for i in 0..res {
+        for j in 0..res {
+            let (x0, y1) = (-half_width + j as f64 * h, half_width - i as f64 * h);
+            let (x1, y0) = (x0 + h, y1 - h);
+            let (tx, ty) = (0.5 * nx as f64 * s.texel, 0.5 * ny as f64 * s.texel);
+            if x0 < -tx + margin || x1 > tx - margin || y0 < -ty + margin || y1 > ty - margin {
+                continue;
+            }
+            keep.push(i * res + j);
+            for (c, t) in target.iter().enumerate() {
+                let mut sum = 0.0;
+                let mut count = 0.0;
+                for a in 0..f {
+                    for b in 0..f {
+                        let x = x0 + (b as f64 + 0.5) * h / f as f64;
+                        let y = y1 - (a as f64 + 0.5) * h / f as f64;
+                        let jj = ((x / s.texel + 0.5 * nx as f64).floor() as usize).min(nx - 1);
+                        let ii = ((0.5 * ny as f64 - y / s.texel).floor() as usize).min(ny - 1);
+                        sum += t[ii * nx + jj];
+                        count += 1.0;
+                    }
+                }
+                target_px[c].push(sum / count);
+            }
+        }
+    }
+    if keep.is_empty() {
+        return Err(Error::param(
+            "validate-resolution",
+            opts.validate_resolution,
+            "pixels inside the texture's interior (a texture wider than 1 MFP)",
+        ));
+    }
+    let geometry = (res, half_width, light_radius, paths);
+    let errors = |mean: &[Vec<f64>], err: &[Vec<f64>]| -> Errors {
+        let pick = |v: &[Vec<f64>]| -> Vec<Vec<f64>> {
+            v.iter()
+                .map(|c| keep.iter().map(|&k| c[k]).collect())
+                .collect()
+        };
+        let (m, e) = (pick(mean), pick(err));
+        let flat = |v: &[Vec<f64>]| v.iter().flatten().copied().collect::<Vec<f64>>();
+        Errors {
+            rel_rmse: rel_rmse(&flat(&m), &flat(&target_px), Some(&flat(&e))),
+            delta_e00: mean_delta_e(&m, &target_px),
+        }
+    };
+    let (naive_m, naive_e) =
+        reference_image(opts, staging, "naive", &designed.naive, (nx, ny), geometry)?;
+    let naive = errors(&naive_m, &naive_e);
+    let noise = {
+        let flat_m: Vec<f64> = keep.iter().map(|&k| naive_m[0][k]).collect();
+        let flat_e: Vec<f64> = keep.iter().map(|&k| naive_e[0][k]).collect();
+        let mean = flat_m.iter().sum::<f64>() / flat_m.len() as f64;
+        (flat_e.iter().map(|e| e * e).sum::<f64>() / flat_e.len() as f64).sqrt() / mean
+    };
+    let mut rows = Vec::new();
+    for method in [Method::Learned, Method::Factorized, Method::Point] {
+        let (maps, design_s) = if method == s.method {
+            (designed.albedo.clone(), designed.solve_seconds)
+        } else {
+            let mut other = s.clone();
+            other.method = method;
+            let d = design_with(opts, &other, target, nx, ny)?;
+            (d.albedo, d.solve_seconds)
+        };
+        let (m, e) = reference_image(opts, staging, method.name(), &maps, (nx, ny), geometry)?;
+        rows.push(ValidationRow {
+            method: method.name().into(),
+            designed: errors(&m, &e),
+            design_s,
+        });
+    }
+    let improvement = naive.rel_rmse / rows[0].designed.rel_rmse.max(1e-12);
+    Ok(Validation {
+        paths,
+        resolution: res,
+        light_radius,
+        interior_margin: margin,
+        reference_noise: noise,
+        naive,
+        rows,
+        improvement,
+        seconds: start.elapsed().as_secs_f64(),
+    })
+}
+
+/// Linear reflectance → sRGB byte.
+fn srgb_byte(v: f64) -> u8 {
+    let v = v.clamp(0.0, 1.0);
+    let e = if v <= 0.003_130_8 {
+        12.92 * v
+    } else {
+        1.055 * v.powf(1.0 / 2.4) - 0.055
+    };
+    (e * 255.0).round() as u8
+}
+
+/// A `ny × nx` PNG of 1 or 3 channels (linear values, sRGB-encoded).
+fn write_map_png(path: &Path, maps: &[Vec<f64>], nx: usize, ny: usize) -> Result<()> {
+    let c = maps.len();
+    let data: Vec<u8> = (0..nx * ny)
+        .flat_map(|k| maps.iter().map(move |m| srgb_byte(m[k])))
+        .collect();
+    super::output::write_png_bytes_wh(path, nx, ny, c == 3, &data)
+}
+
+/// (ny, nx, c) or (ny, nx) array of per-channel maps.
+fn array(maps: &[Vec<f64>], nx: usize, ny: usize) -> ndarray::ArrayD<f64> {
+    let c = maps.len();
+    if c == 1 {
+        ndarray::ArrayD::from_shape_vec(vec![ny, nx], maps[0].clone()).expect("shape")
+    } else {
+        ndarray::ArrayD::from_shape_fn(vec![ny, nx, c], |ix| maps[ix[2]][ix[0] * nx + ix[1]])
+    }
+}
+
+/// Writes every output into the staging folder, then moves them into `out`.
+fn write_outputs(
+    opts: &DesignOptions,
+    staging: &Path,
+    doc: &DesignDoc,
+    d: &Design,
+    target: &[Vec<f64>],
+    nx: usize,
+    ny: usize,
+) -> Result<()> {
+    let files = staging.join("files");
+    std::fs::create_dir_all(&files).map_err(|e| Error::io(&files, e))?;
+    write_npy_atomic(&files.join("albedo.npy"), &array(&d.albedo, nx, ny))?;
+    write_npy_atomic(&files.join("naive.npy"), &array(&d.naive, nx, ny))?;
+    write_npy_atomic(&files.join("predicted.npy"), &array(&d.predicted, nx, ny))?;
+    write_map_png(&files.join("albedo.png"), &d.albedo, nx, ny)?;
+    write_json_atomic(&files.join("design.json"), doc)?;
+    // The report's images.
+    let img = staging.join("img");
+    std::fs::create_dir_all(&img).map_err(|e| Error::io(&img, e))?;
+    let p = |n: &str| img.join(n);
+    write_map_png(&p("target.png"), target, nx, ny)?;
+    write_map_png(&p("naive.png"), &d.naive, nx, ny)?;
+    write_map_png(&p("albedo.png"), &d.albedo, nx, ny)?;
+    write_map_png(&p("predicted_naive.png"), &d.predicted_naive, nx, ny)?;
+    write_map_png(&p("predicted.png"), &d.predicted, nx, ny)?;
+    let range = 0.1;
+    let diverging = |path: &Path, a: &[Vec<f64>]| -> Result<()> {
+        let data: Vec<u8> = (0..nx * ny)
+            .flat_map(|k| {
+                let e =
+                    a.iter().zip(target).map(|(x, y)| x[k] - y[k]).sum::<f64>() / a.len() as f64;
+                super::output::diverging((e / range).clamp(-1.0, 1.0))
+            })
+            .collect();
+        super::output::write_png_bytes_wh(path, nx, ny, true, &data)
+    };
+    diverging(&p("error_naive.png"), &d.predicted_naive)?;
+    diverging(&p("error_designed.png"), &d.predicted)?;
+    let series: Vec<Series> = (0..target.len())
+        .map(|c| {
+            let pts = d
+                .history
+                .iter()
+                .filter(|h| h.channel == c)
+                .enumerate()
+                .map(|(k, h)| (k as f64, h.objective))
+                .collect();
+            Series::line(format!("channel {c}"), pts, c)
+        })
+        .collect();
+    chart(
+        &p("convergence.png"),
+        &Axes {
+            title: "objective: fixed-point steps, then L-BFGS-B iterations".into(),
+            x_label: "step".into(),
+            y_label: "F(α)".into(),
+            log_x: false,
+            log_y: true,
+        },
+        &series,
+    )?;
+    let cell = |caption: &str, name: &str| Some((caption.to_string(), p(name)));
+    let mut blocks = vec![
+        Block::Para(format!(
+            "Target `{}` ({ny} × {nx}, {} channel(s)), texel {} MFP, albedo range [{}, {}], \
+             {} illumination, forward model `{}`. {} fixed-point steps and {} L-BFGS-B \
+             iterations per channel in {:.1} s ({} model evaluations), set-up {:.1} s.",
+            opts.target.display(),
+            target.len(),
+            doc.texel,
+            doc.albedo_range[0],
+            doc.albedo_range[1],
+            doc.illumination,
+            doc.method,
+            doc.warm_start,
+            doc.iterations,
+            doc.solve_s,
+            doc.evaluations,
+            doc.setup_s,
+        )),
+        Block::Heading(2, "Maps".into()),
+        Block::Grid {
+            rows: vec![vec![
+                cell("target (appearance)", "target.png"),
+                cell("naive albedo", "naive.png"),
+                cell("designed albedo", "albedo.png"),
+            ]],
+            width: 256,
+        },
+        Block::Heading(2, "Appearance under the model".into()),
+        Block::Grid {
+            rows: vec![vec![
+                cell("naive", "predicted_naive.png"),
+                cell("designed", "predicted.png"),
+                cell(&format!("naive − target (±{range})"), "error_naive.png"),
+                cell(
+                    &format!("designed − target (±{range})"),
+                    "error_designed.png",
+                ),
+            ]],
+            width: 256,
+        },
+        Block::table(
+            &["map", "model's relative RMSE against the target"],
+            vec![
+                vec![
+                    "naive".into(),
+                    format!("{:.2} %", 100.0 * doc.model_naive_rel_rmse),
+                ],
+                vec![
+                    "designed".into(),
+                    format!("{:.2} %", 100.0 * doc.model_designed_rel_rmse),
+                ],
+            ],
+        ),
+        Block::Figure {
+            caption: "convergence".into(),
+            path: p("convergence.png"),
+        },
+    ];
+    if let Some(v) = &doc.validation {
+        blocks.push(Block::Heading(2, "Brute-force validation".into()));
+        blocks.push(Block::Para(format!(
+            "Reference walk, {} paths per map, {}² pixels, collimated disk light of radius \
+             {:.1} MFP; interior: pixels at least {} MFP inside the texture; reference noise \
+             {:.1} % per pixel (RMS, subtracted from the relative RMSE, not from ΔE₀₀). \
+             {:.0} s.",
+            v.paths,
+            v.resolution,
+            v.light_radius,
+            v.interior_margin,
+            100.0 * v.reference_noise,
+            v.seconds
+        )));
+        let mut rows = vec![vec![
+            "naive".into(),
+            format!("{:.2} %", 100.0 * v.naive.rel_rmse),
+            format!("{:.2}", v.naive.delta_e00),
+            "—".into(),
+        ]];
+        for r in &v.rows {
+            rows.push(vec![
+                format!("designed with `{}`", r.method),
+                format!("{:.2} %", 100.0 * r.designed.rel_rmse),
+                format!("{:.2}", r.designed.delta_e00),
+                format!("{:.1}", r.design_s),
+            ]);
+        }
+        blocks.push(Block::table(
+            &["map", "relative RMSE", "mean ΔE₀₀", "design time [s]"],
+            rows,
+        ));
+    }
+    let html = to_html("svkernel design", &blocks)?;
+    write_atomic(&files.join("report.html"), html.as_bytes())?;
+    // Publish: every file into `out`, then drop the staging folder.
+    std::fs::create_dir_all(&opts.out).map_err(|e| Error::io(&opts.out, e))?;
+    for name in [
+        "albedo.npy",
+        "albedo.png",
+        "naive.npy",
+        "predicted.npy",
+        "design.json",
+        "report.html",
+    ] {
+        let to = opts.out.join(name);
+        std::fs::rename(files.join(name), &to).map_err(|e| Error::io(&to, e))?;
+    }
+    std::fs::remove_dir_all(staging).map_err(|e| Error::io(staging, e))?;
+    Ok(())
+}
