@@ -40,7 +40,7 @@ use crate::metamodel::meta::MetaModelFile;
 use crate::render::svbssrdf::Method;
 use appearance::{Appearance, Illumination, Quadrature};
 use rcompat_lbfgsb::{ArithmeticProfile, Bounds, OptimControl, OptimEvent};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::cell::RefCell;
 use std::time::Instant;
 
@@ -115,7 +115,7 @@ impl Settings {
 }
 
 /// What a [`Step`] of the history is.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Stage {
     /// A fixed-point step of the warm start (before the step).
@@ -127,7 +127,7 @@ pub enum Stage {
 }
 
 /// One step of a channel's history.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct Step {
     pub channel: usize,
     pub stage: Stage,
@@ -410,9 +410,178 @@ fn solve_channel(
     })
 }
 
-/// Designs every channel of `target` (per channel row-major `ny × nx`
-/// reflectances in [0, 1]). `progress(done, total)` is called after every
-/// model evaluation, with the evaluations done and an estimate of the total.
+/// One designed channel.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ChannelDesign {
+    /// The designed map, row-major `ny × nx`.
+    pub albedo: Vec<f64>,
+    /// The model's appearance of the designed and of the naive map.
+    pub predicted: Vec<f64>,
+    pub predicted_naive: Vec<f64>,
+    pub history: Vec<Step>,
+    /// Why L-BFGS-B stopped.
+    pub stop: String,
+    /// Model evaluations (fixed-point steps and L-BFGS-B's).
+    pub evaluations: usize,
+    /// Seconds this channel took.
+    pub seconds: f64,
+}
+
+/// A prepared design problem: the model, the coordinate and the naive
+/// maps, channel by channel ([`Designer::channel`]) so that a caller can
+/// checkpoint between channels.
+pub struct Designer<'a> {
+    app: Appearance,
+    coord: Reflectance,
+    settings: Settings,
+    target: &'a [Vec<f64>],
+    naive: Vec<Vec<f64>>,
+    nx: usize,
+    setup_seconds: f64,
+}
+
+impl<'a> Designer<'a> {
+    /// Validates the target (per channel row-major `ny × nx` reflectances
+    /// in [0, 1]) and the settings, and builds the model.
+    pub fn new(
+        target: &'a [Vec<f64>],
+        nx: usize,
+        ny: usize,
+        basis: &BasisModel,
+        meta: Option<&MetaModelFile>,
+        settings: &Settings,
+    ) -> Result<Self> {
+        settings.validate()?;
+        if target.is_empty() || target.iter().any(|t| t.len() != nx * ny) {
+            return Err(Error::param(
+                "target",
+                "shape",
+                "one or three channels of ny × nx values",
+            ));
+        }
+        if let Some(bad) = target.iter().flatten().find(|v| !(0.0..=1.0).contains(*v)) {
+            return Err(Error::param(
+                "target",
+                bad,
+                "reflectances in [0, 1] (no NaN)",
+            ));
+        }
+        let start = Instant::now();
+        let range = settings.albedo_range;
+        let naive: Vec<Vec<f64>> = target
+            .iter()
+            .map(|t| t.iter().map(|&v| naive_albedo(basis, v, range)).collect())
+            .collect();
+        // The offsets cover the naive maps' albedos (2nd and 98th percentiles).
+        let mut all: Vec<f64> = naive.iter().flatten().copied().collect();
+        all.sort_by(f64::total_cmp);
+        let pick = |q: f64| all[((all.len() - 1) as f64 * q).round() as usize];
+        let span = [
+            pick(0.02).min(0.9),
+            pick(0.98).max(pick(0.02) + 0.05).min(0.99),
+        ];
+        let app = Appearance::new(
+            settings.method,
+            basis,
+            meta,
+            nx,
+            ny,
+            settings.texel,
+            settings.illumination,
+            span,
+            &settings.quadrature,
+        )?;
+        Ok(Designer {
+            app,
+            coord: Reflectance::new(basis, range),
+            settings: settings.clone(),
+            target,
+            naive,
+            nx,
+            setup_seconds: start.elapsed().as_secs_f64(),
+        })
+    }
+
+    pub fn channels(&self) -> usize {
+        self.target.len()
+    }
+
+    /// The naive maps.
+    pub fn naive(&self) -> &[Vec<f64>] {
+        &self.naive
+    }
+
+    /// Seconds spent building the model.
+    pub fn setup_seconds(&self) -> f64 {
+        self.setup_seconds
+    }
+
+    /// About how many model evaluations a channel takes (fixed-point steps
+    /// plus about 1.2 per L-BFGS-B iteration), for progress.
+    pub fn evaluations_per_channel(&self) -> usize {
+        self.settings.warm_start + self.settings.iterations * 6 / 5
+    }
+
+    /// Designs channel `c`; `progress(k)` after each of its evaluations.
+    pub fn channel(&self, c: usize, mut progress: impl FnMut(usize)) -> Result<ChannelDesign> {
+        let start = Instant::now();
+        let (app, naive) = (&self.app, &self.naive[c]);
+        let s = solve_channel(
+            app,
+            &self.coord,
+            &self.settings,
+            c,
+            &self.target[c],
+            naive,
+            self.nx,
+            &mut progress,
+        )?;
+        Ok(ChannelDesign {
+            predicted: app.appearance(&s.alpha, &s.anchor),
+            predicted_naive: app.appearance(naive, &app.anchor(naive)),
+            albedo: s.alpha,
+            history: s.steps,
+            stop: s.stop,
+            evaluations: s.evaluations,
+            seconds: start.elapsed().as_secs_f64(),
+        })
+    }
+}
+
+impl Design {
+    /// The design of `channels` (in channel order) from their naive maps.
+    pub fn assemble(
+        naive: &[Vec<f64>],
+        setup_seconds: f64,
+        channels: Vec<ChannelDesign>,
+    ) -> Design {
+        let mut d = Design {
+            albedo: Vec::new(),
+            naive: naive.to_vec(),
+            predicted: Vec::new(),
+            predicted_naive: Vec::new(),
+            history: Vec::new(),
+            evaluations: 0,
+            setup_seconds,
+            solve_seconds: 0.0,
+            stops: Vec::new(),
+        };
+        for ch in channels {
+            d.albedo.push(ch.albedo);
+            d.predicted.push(ch.predicted);
+            d.predicted_naive.push(ch.predicted_naive);
+            d.history.extend(ch.history);
+            d.stops.push(ch.stop);
+            d.evaluations += ch.evaluations;
+            d.solve_seconds += ch.seconds;
+        }
+        d
+    }
+}
+
+/// Designs every channel of `target` ([`Designer`]). `progress(done,
+/// total)` is called after every model evaluation, with the evaluations
+/// done and an estimate of the total.
 pub fn design(
     target: &[Vec<f64>],
     nx: usize,
@@ -422,77 +591,20 @@ pub fn design(
     settings: &Settings,
     mut progress: impl FnMut(usize, usize),
 ) -> Result<Design> {
-    settings.validate()?;
-    if target.is_empty() || target.iter().any(|t| t.len() != nx * ny) {
-        return Err(Error::param(
-            "target",
-            "shape",
-            "one or three channels of ny × nx values",
-        ));
+    let designer = Designer::new(target, nx, ny, basis, meta, settings)?;
+    let total = designer.evaluations_per_channel() * designer.channels();
+    let mut done = 0;
+    let mut channels = Vec::new();
+    for c in 0..designer.channels() {
+        let ch = designer.channel(c, |k| progress(done + k, total.max(done + k)))?;
+        done += ch.evaluations;
+        channels.push(ch);
     }
-    if let Some(bad) = target.iter().flatten().find(|v| !(0.0..=1.0).contains(*v)) {
-        return Err(Error::param(
-            "target",
-            bad,
-            "reflectances in [0, 1] (no NaN)",
-        ));
-    }
-    let range = settings.albedo_range;
-    let naive: Vec<Vec<f64>> = target
-        .iter()
-        .map(|t| t.iter().map(|&v| naive_albedo(basis, v, range)).collect())
-        .collect();
-    // The offsets cover the naive maps' albedos (their 2nd and 98th percentiles).
-    let mut all: Vec<f64> = naive.iter().flatten().copied().collect();
-    all.sort_by(f64::total_cmp);
-    let pick = |q: f64| all[((all.len() - 1) as f64 * q).round() as usize];
-    let span = [
-        pick(0.02).min(0.9),
-        pick(0.98).max(pick(0.02) + 0.05).min(0.99),
-    ];
-    let start = Instant::now();
-    let app = Appearance::new(
-        settings.method,
-        basis,
-        meta,
-        nx,
-        ny,
-        settings.texel,
-        settings.illumination,
-        span,
-        &settings.quadrature,
-    )?;
-    let coord = Reflectance::new(basis, range);
-    let setup_seconds = start.elapsed().as_secs_f64();
-    let solve = Instant::now();
-    // Fixed-point steps plus about 1.2 evaluations per iteration.
-    let per_channel = settings.warm_start + settings.iterations * 6 / 5;
-    let budget = per_channel * target.len();
-    let mut d = Design {
-        albedo: Vec::new(),
-        naive: naive.clone(),
-        predicted: Vec::new(),
-        predicted_naive: Vec::new(),
-        history: Vec::new(),
-        evaluations: 0,
-        setup_seconds,
-        solve_seconds: 0.0,
-        stops: Vec::new(),
-    };
-    for (c, t) in target.iter().enumerate() {
-        let before = d.evaluations;
-        let mut report = |k: usize| progress(before + k, budget.max(before + k));
-        let s = solve_channel(&app, &coord, settings, c, t, &naive[c], nx, &mut report)?;
-        d.predicted_naive
-            .push(app.appearance(&naive[c], &app.anchor(&naive[c])));
-        d.predicted.push(app.appearance(&s.alpha, &s.anchor));
-        d.albedo.push(s.alpha);
-        d.history.extend(s.steps);
-        d.stops.push(s.stop);
-        d.evaluations += s.evaluations;
-    }
-    d.solve_seconds = solve.elapsed().as_secs_f64();
-    Ok(d)
+    Ok(Design::assemble(
+        designer.naive(),
+        designer.setup_seconds(),
+        channels,
+    ))
 }
 
 #[cfg(test)]

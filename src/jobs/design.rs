@@ -11,8 +11,10 @@
 //! * `report.html`: target, albedo maps, appearances, error maps and the
 //!   convergence plot.
 //!
-//! Work in progress (reference checkpoints of a validation) lives in
-//! `.DIR.partial` beside DIR and is resumed from there.
+//! Work in progress (each finished channel, and the reference tallies of
+//! a validation, checkpointed every 30 s) lives in `.DIR.partial` beside DIR
+//! and is resumed from there by a re-run with the same target, settings and
+//! models.
 //!
 //! # Validation
 //! With `validate`, the naive and the designed maps (and the maps designed
@@ -28,9 +30,9 @@ use super::plot::{Axes, Series, chart};
 use super::render::{RenderOptions, Target, render_scene};
 use super::report::{Block, to_html};
 use super::shipped::Models;
-use super::store::{write_atomic, write_json_atomic, write_npy_atomic};
+use super::store::{content_hash, write_atomic, write_json_atomic, write_npy_atomic};
 use crate::design::appearance::Illumination;
-use crate::design::{self, Design, Settings, Step};
+use crate::design::{ChannelDesign, Design, Designer, Settings, Step};
 use crate::error::{Error, Result};
 use crate::forward::maps::TexelMap;
 use crate::forward::medium::Observable;
@@ -93,6 +95,19 @@ pub struct Validation {
     /// Designed error ÷ naive error for `learned` (relative RMSE).
     pub improvement: f64,
     pub seconds: f64,
+    /// The validation images (not in `design.json`; written as `.npy`).
+    #[serde(skip)]
+    pub images: ValidationImages,
+}
+
+/// Per channel, row-major `resolution²` images of the validation: the
+/// target averaged over each pixel, and the brute-force appearance of the
+/// naive and of the designed map.
+#[derive(Clone, Debug, Default)]
+pub struct ValidationImages {
+    pub target: Vec<Vec<f64>>,
+    pub naive: Vec<Vec<f64>>,
+    pub designed: Vec<Vec<f64>>,
 }
 
 /// `design.json`.
@@ -141,7 +156,7 @@ pub fn run(opts: &DesignOptions) -> Result<DesignDoc> {
         ));
     }
     let staging = staging_dir(&opts.out)?;
-    let designed = design_with(opts, s, &target, nx, ny)?;
+    let designed = design_with(opts, &staging, s, &target, nx, ny)?;
     let mut validation = None;
     if let Some(paths) = opts.validate {
         validation = Some(validate(opts, &staging, &target, nx, ny, &designed, paths)?);
@@ -189,33 +204,72 @@ fn staging_dir(out: &Path) -> Result<PathBuf> {
     Ok(dir)
 }
 
-/// The design with the options' settings, with a progress line.
+/// The design with settings `s`, with a progress line; each finished
+/// channel is checkpointed in `staging` (keyed by the target channel, the
+/// settings and the models) and taken from there by a re-run.
 fn design_with(
     opts: &DesignOptions,
+    staging: &Path,
     s: &Settings,
     target: &[Vec<f64>],
     nx: usize,
     ny: usize,
 ) -> Result<Design> {
-    let label = format!("design ({})", s.method.name());
+    let models = &opts.models;
+    let designer = Designer::new(target, nx, ny, &models.basis, Some(&models.meta), s)?;
+    let total = designer.evaluations_per_channel() * designer.channels();
     let task = crate::progress::Task::new(
         opts.progress,
-        label,
-        ((s.warm_start + s.iterations * 6 / 5) * target.len()) as u64,
+        format!("design ({})", s.method.name()),
+        total as u64,
         "evaluations",
     );
-    let models = &opts.models;
-    let d = design::design(
-        target,
-        nx,
-        ny,
-        &models.basis,
-        Some(&models.meta),
-        s,
-        |done, _| task.set(done as u64),
-    )?;
+    let mut done = 0;
+    let mut channels = Vec::new();
+    for (c, t) in target.iter().enumerate() {
+        let bytes: Vec<u8> = t.iter().flat_map(|v| v.to_le_bytes()).collect();
+        let settings = format!(
+            "{s:?} {nx}x{ny} {} {}",
+            models.basis_origin.display(),
+            models.meta_origin.display()
+        );
+        let key = content_hash([bytes.as_slice(), settings.as_bytes()]);
+        let file = staging.join(format!("{}-channel{c}.json", s.method.name()));
+        let stored = std::fs::read(&file)
+            .ok()
+            .and_then(|b| serde_json::from_slice::<ChannelCheckpoint>(&b).ok())
+            .filter(|ck| ck.key == key);
+        let ch = match stored {
+            Some(ck) => ck.design,
+            None => {
+                let ch = designer.channel(c, |k| task.set((done + k) as u64))?;
+                write_json_atomic(
+                    &file,
+                    &ChannelCheckpoint {
+                        key,
+                        design: ch.clone(),
+                    },
+                )?;
+                ch
+            }
+        };
+        done += ch.evaluations;
+        task.set(done as u64);
+        channels.push(ch);
+    }
     task.finish();
-    Ok(d)
+    Ok(Design::assemble(
+        designer.naive(),
+        designer.setup_seconds(),
+        channels,
+    ))
+}
+
+/// A finished channel in the staging folder.
+#[derive(Serialize, serde::Deserialize)]
+struct ChannelCheckpoint {
+    key: String,
+    design: ChannelDesign,
 }
 
 /// √(max(0, Σ(m − t)² − Σσ²)/Σt²) over the texels where `keep` (all if None).
@@ -314,14 +368,25 @@ fn validate(
     let f = side.div_ceil(opts.validate_resolution.max(1)).max(1);
     let res = side.div_ceil(f);
     let half_width = 0.5 * (res * f) as f64 * s.texel;
-    // The light reaches 4 diffusion lengths 1/σ_tr beyond the image, for the
-    // largest albedo of the maps (σ_tr = √(3σ_a σ_t′), unit σ_t).
+    // Beyond the texture the medium is its edge texels extended; the light
+    // reaches 4 diffusion lengths 1/σ_tr beyond the image for the largest
+    // albedo on the edges of the maps (σ_tr = √(3σ_a σ_t′), unit σ_t):
+    // light from further out contributes < 1 % of the reflectance there.
+    let edge = |m: &Vec<f64>| -> Vec<f64> {
+        (0..nx * ny)
+            .filter(|k| {
+                let (i, j) = (k / nx, k % nx);
+                i == 0 || j == 0 || i + 1 == ny || j + 1 == nx
+            })
+            .map(|k| m[k])
+            .collect()
+    };
     let alpha_max = designed
         .albedo
         .iter()
         .chain(&designed.naive)
-        .flatten()
-        .fold(0.0f64, |a, &b| a.max(b));
+        .flat_map(edge)
+        .fold(0.0f64, f64::max);
     let g = opts.models.meta.g;
     let sigma_tr = (3.0 * (1.0 - alpha_max) * (1.0 - alpha_max * g))
         .sqrt()
@@ -335,33 +400,36 @@ fn validate(
     let h = 2.0 * half_width / res as f64;
     let margin = 0.5;
     let mut keep = Vec::new();
-    let mut target_px: Vec<Vec<f64>> = vec![Vec::new(); target.len()];
+    let mut target_full: Vec<Vec<f64>> = vec![vec![0.0; res * res]; target.len()];
+    let (tx, ty) = (0.5 * nx as f64 * s.texel, 0.5 * ny as f64 * s.texel);
     for i in 0..res {
         for j in 0..res {
             let (x0, y1) = (-half_width + j as f64 * h, half_width - i as f64 * h);
             let (x1, y0) = (x0 + h, y1 - h);
-            let (tx, ty) = (0.5 * nx as f64 * s.texel, 0.5 * ny as f64 * s.texel);
-            if x0 < -tx + margin || x1 > tx - margin || y0 < -ty + margin || y1 > ty - margin {
-                continue;
+            if x0 >= -tx + margin && x1 <= tx - margin && y0 >= -ty + margin && y1 <= ty - margin {
+                keep.push(i * res + j);
             }
-            keep.push(i * res + j);
             for (c, t) in target.iter().enumerate() {
                 let mut sum = 0.0;
-                let mut count = 0.0;
                 for a in 0..f {
                     for b in 0..f {
                         let x = x0 + (b as f64 + 0.5) * h / f as f64;
                         let y = y1 - (a as f64 + 0.5) * h / f as f64;
-                        let jj = ((x / s.texel + 0.5 * nx as f64).floor() as usize).min(nx - 1);
-                        let ii = ((0.5 * ny as f64 - y / s.texel).floor() as usize).min(ny - 1);
+                        let jj =
+                            ((x / s.texel + 0.5 * nx as f64).floor().max(0.0) as usize).min(nx - 1);
+                        let ii =
+                            ((0.5 * ny as f64 - y / s.texel).floor().max(0.0) as usize).min(ny - 1);
                         sum += t[ii * nx + jj];
-                        count += 1.0;
                     }
                 }
-                target_px[c].push(sum / count);
+                target_full[c][i * res + j] = sum / (f * f) as f64;
             }
         }
     }
+    let target_px: Vec<Vec<f64>> = target_full
+        .iter()
+        .map(|c| keep.iter().map(|&k| c[k]).collect())
+        .collect();
     if keep.is_empty() {
         return Err(Error::param(
             "validate-resolution",
@@ -393,16 +461,20 @@ fn validate(
         (flat_e.iter().map(|e| e * e).sum::<f64>() / flat_e.len() as f64).sqrt() / mean
     };
     let mut rows = Vec::new();
+    let mut designed_image = Vec::new();
     for method in [Method::Learned, Method::Factorized, Method::Point] {
         let (maps, design_s) = if method == s.method {
             (designed.albedo.clone(), designed.solve_seconds)
         } else {
             let mut other = s.clone();
             other.method = method;
-            let d = design_with(opts, &other, target, nx, ny)?;
+            let d = design_with(opts, staging, &other, target, nx, ny)?;
             (d.albedo, d.solve_seconds)
         };
         let (m, e) = reference_image(opts, staging, method.name(), &maps, (nx, ny), geometry)?;
+        if method == s.method {
+            designed_image = m.clone();
+        }
         rows.push(ValidationRow {
             method: method.name().into(),
             designed: errors(&m, &e),
@@ -420,6 +492,11 @@ fn validate(
         rows,
         improvement,
         seconds: start.elapsed().as_secs_f64(),
+        images: ValidationImages {
+            target: target_full,
+            naive: naive_m,
+            designed: designed_image,
+        },
     })
 }
 
@@ -574,8 +651,56 @@ fn write_outputs(
             path: p("convergence.png"),
         },
     ];
+    let mut published = vec![
+        "albedo.npy",
+        "albedo.png",
+        "naive.npy",
+        "predicted.npy",
+        "design.json",
+        "report.html",
+    ];
     if let Some(v) = &doc.validation {
+        let r = v.resolution;
+        let im = &v.images;
+        write_npy_atomic(&files.join("reference_naive.npy"), &array(&im.naive, r, r))?;
+        write_npy_atomic(
+            &files.join("reference_designed.npy"),
+            &array(&im.designed, r, r),
+        )?;
+        published.extend(["reference_naive.npy", "reference_designed.npy"]);
+        write_map_png(&p("v_target.png"), &im.target, r, r)?;
+        write_map_png(&p("v_naive.png"), &im.naive, r, r)?;
+        write_map_png(&p("v_designed.png"), &im.designed, r, r)?;
+        let diff = |path: &Path, a: &[Vec<f64>]| -> Result<()> {
+            let data: Vec<u8> = (0..r * r)
+                .flat_map(|k| {
+                    let e = a
+                        .iter()
+                        .zip(&im.target)
+                        .map(|(x, y)| x[k] - y[k])
+                        .sum::<f64>()
+                        / a.len() as f64;
+                    super::output::diverging((e / range).clamp(-1.0, 1.0))
+                })
+                .collect();
+            super::output::write_png_bytes_wh(path, r, r, true, &data)
+        };
+        diff(&p("v_error_naive.png"), &im.naive)?;
+        diff(&p("v_error_designed.png"), &im.designed)?;
         blocks.push(Block::Heading(2, "Brute-force validation".into()));
+        blocks.push(Block::Grid {
+            rows: vec![vec![
+                cell("target (pixel means)", "v_target.png"),
+                cell("naive, brute force", "v_naive.png"),
+                cell("designed, brute force", "v_designed.png"),
+                cell(&format!("naive − target (±{range})"), "v_error_naive.png"),
+                cell(
+                    &format!("designed − target (±{range})"),
+                    "v_error_designed.png",
+                ),
+            ]],
+            width: 256,
+        });
         blocks.push(Block::Para(format!(
             "Reference walk, {} paths per map, {}² pixels, collimated disk light of radius \
              {:.1} MFP; interior: pixels at least {} MFP inside the texture; reference noise \
@@ -611,14 +736,7 @@ fn write_outputs(
     write_atomic(&files.join("report.html"), html.as_bytes())?;
     // Publish: every file into `out`, then drop the staging folder.
     std::fs::create_dir_all(&opts.out).map_err(|e| Error::io(&opts.out, e))?;
-    for name in [
-        "albedo.npy",
-        "albedo.png",
-        "naive.npy",
-        "predicted.npy",
-        "design.json",
-        "report.html",
-    ] {
+    for name in published {
         let to = opts.out.join(name);
         std::fs::rename(files.join(name), &to).map_err(|e| Error::io(&to, e))?;
     }

@@ -1,0 +1,104 @@
+//! `svkernel design` end to end: the files it writes (and only when the
+//! design is complete), its validation by brute force, and bad input
+//! refused by name.
+
+use std::path::{Path, PathBuf};
+use svkernel::design::Settings;
+use svkernel::design::appearance::Quadrature;
+use svkernel::jobs::design::{DesignOptions, run};
+use svkernel::jobs::shipped::Models;
+
+fn dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("svk-design-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// A 24 × 20 target (τ = 0.2 MFP): a soft bright disk on a darker ground.
+fn target(path: &Path) {
+    let (nx, ny) = (24, 20);
+    let t = ndarray::Array2::from_shape_fn((ny, nx), |(i, j)| {
+        let (x, y) = (j as f64 - 11.5, i as f64 - 9.5);
+        0.08 + 0.15 * (-(x * x + y * y) / 30.0).exp()
+    });
+    ndarray_npy::write_npy(path, &t).unwrap();
+}
+
+fn options(target: PathBuf, out: PathBuf, validate: Option<u64>) -> DesignOptions {
+    DesignOptions {
+        target,
+        out,
+        settings: Settings {
+            texel: 0.2,
+            warm_start: 5,
+            iterations: 6,
+            quadrature: Quadrature {
+                rings: 6,
+                angles: 2,
+            },
+            ..Settings::default()
+        },
+        validate,
+        validate_resolution: 12,
+        seed: 3,
+        models: Models::builtin().unwrap(),
+        progress: false,
+    }
+}
+
+#[test]
+fn design_writes_its_files_and_validates_by_brute_force() {
+    let d = dir("run");
+    let t = d.join("target.npy");
+    target(&t);
+    let out = d.join("out");
+    let doc = run(&options(t, out.clone(), Some(200_000))).unwrap();
+    for f in [
+        "albedo.npy",
+        "albedo.png",
+        "naive.npy",
+        "predicted.npy",
+        "design.json",
+        "report.html",
+    ] {
+        assert!(out.join(f).is_file(), "{f} missing");
+    }
+    // Nothing of the work in progress is left behind.
+    assert!(!d.join(".out.partial").exists());
+    let albedo: ndarray::Array2<f64> = ndarray_npy::read_npy(out.join("albedo.npy")).unwrap();
+    assert_eq!(albedo.shape(), &[20, 24]);
+    assert!(albedo.iter().all(|a| (0.2..=0.99).contains(a)));
+    assert!(doc.model_designed_rel_rmse < doc.model_naive_rel_rmse);
+    let v = doc.validation.expect("validated");
+    assert_eq!(v.rows.len(), 3);
+    assert!(v.naive.rel_rmse.is_finite() && v.naive.delta_e00 >= 0.0);
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("design.json")).unwrap()).unwrap();
+    assert_eq!(json["format"], "svkernel-design");
+    assert!(json["history"].as_array().unwrap().len() >= 5);
+}
+
+#[test]
+fn bad_targets_are_refused_naming_the_file() {
+    let d = dir("bad");
+    // Out of [0, 1].
+    let t = d.join("hot.npy");
+    ndarray_npy::write_npy(&t, &ndarray::Array2::from_elem((4, 4), 1.5)).unwrap();
+    let e = run(&options(t, d.join("out"), None))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("hot.npy") && e.contains("[0, 1]"), "{e}");
+    // Missing, and of an unknown kind.
+    let e = run(&options(d.join("gone.npy"), d.join("out"), None))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("gone.npy"), "{e}");
+    let txt = d.join("target.txt");
+    std::fs::write(&txt, "0.5").unwrap();
+    let e = run(&options(txt, d.join("out"), None))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("target.txt") && e.contains(".png"), "{e}");
+    assert!(!d.join("out").exists(), "no output for a refused target");
+}
