@@ -13,7 +13,7 @@
 //!
 //! # Solver
 //! The unknowns are the reflectances u = R_d(α) of the homogeneous material
-//! ([`Reflectance`]): in u the appearance is close to a blur of u, so the
+//! (a tabulated monotone map): in u the appearance is close to a blur of u, so the
 //! problem is well scaled over the whole gamut, and the bounds stay a box.
 //! 1. **Warm start**: `warm_start` projected fixed-point steps
 //!    u ← Π(u + T − M(u)) (Van Cittert 1931), one model evaluation each.
