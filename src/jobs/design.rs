@@ -26,6 +26,7 @@
 //! Dalal 2005; the `palette` crate) of the linear reflectances read as
 //! linear sRGB.
 
+use super::output::{diverging, srgb, to_u8, write_png_bytes_wh};
 use super::plot::{Axes, Series, chart};
 use super::render::{RenderOptions, Target, render_scene};
 use super::report::{Block, to_html};
@@ -500,24 +501,31 @@ fn validate(
     })
 }
 
-/// Linear reflectance → sRGB byte.
-fn srgb_byte(v: f64) -> u8 {
-    let v = v.clamp(0.0, 1.0);
-    let e = if v <= 0.003_130_8 {
-        12.92 * v
-    } else {
-        1.055 * v.powf(1.0 / 2.4) - 0.055
-    };
-    (e * 255.0).round() as u8
-}
-
 /// A `ny × nx` PNG of 1 or 3 channels (linear values, sRGB-encoded).
 fn write_map_png(path: &Path, maps: &[Vec<f64>], nx: usize, ny: usize) -> Result<()> {
     let c = maps.len();
     let data: Vec<u8> = (0..nx * ny)
-        .flat_map(|k| maps.iter().map(move |m| srgb_byte(m[k])))
+        .flat_map(|k| maps.iter().map(move |m| to_u8(srgb(m[k]))))
         .collect();
-    super::output::write_png_bytes_wh(path, nx, ny, c == 3, &data)
+    write_png_bytes_wh(path, nx, ny, c == 3, &data)
+}
+
+/// A diverging PNG (`w × h`) of the channel-mean difference a − t over
+/// ±`range`.
+fn write_error_png(
+    path: &Path,
+    a: &[Vec<f64>],
+    t: &[Vec<f64>],
+    (w, h): (usize, usize),
+    range: f64,
+) -> Result<()> {
+    let data: Vec<u8> = (0..w * h)
+        .flat_map(|k| {
+            let e = a.iter().zip(t).map(|(x, y)| x[k] - y[k]).sum::<f64>() / a.len() as f64;
+            diverging((e / range).clamp(-1.0, 1.0))
+        })
+        .collect();
+    write_png_bytes_wh(path, w, h, true, &data)
 }
 
 /// (ny, nx, c) or (ny, nx) array of per-channel maps.
@@ -557,18 +565,20 @@ fn write_outputs(
     write_map_png(&p("predicted_naive.png"), &d.predicted_naive, nx, ny)?;
     write_map_png(&p("predicted.png"), &d.predicted, nx, ny)?;
     let range = 0.1;
-    let diverging = |path: &Path, a: &[Vec<f64>]| -> Result<()> {
-        let data: Vec<u8> = (0..nx * ny)
-            .flat_map(|k| {
-                let e =
-                    a.iter().zip(target).map(|(x, y)| x[k] - y[k]).sum::<f64>() / a.len() as f64;
-                super::output::diverging((e / range).clamp(-1.0, 1.0))
-            })
-            .collect();
-        super::output::write_png_bytes_wh(path, nx, ny, true, &data)
-    };
-    diverging(&p("error_naive.png"), &d.predicted_naive)?;
-    diverging(&p("error_designed.png"), &d.predicted)?;
+    write_error_png(
+        &p("error_naive.png"),
+        &d.predicted_naive,
+        target,
+        (nx, ny),
+        range,
+    )?;
+    write_error_png(
+        &p("error_designed.png"),
+        &d.predicted,
+        target,
+        (nx, ny),
+        range,
+    )?;
     let series: Vec<Series> = (0..target.len())
         .map(|c| {
             let pts = d
@@ -671,22 +681,20 @@ fn write_outputs(
         write_map_png(&p("v_target.png"), &im.target, r, r)?;
         write_map_png(&p("v_naive.png"), &im.naive, r, r)?;
         write_map_png(&p("v_designed.png"), &im.designed, r, r)?;
-        let diff = |path: &Path, a: &[Vec<f64>]| -> Result<()> {
-            let data: Vec<u8> = (0..r * r)
-                .flat_map(|k| {
-                    let e = a
-                        .iter()
-                        .zip(&im.target)
-                        .map(|(x, y)| x[k] - y[k])
-                        .sum::<f64>()
-                        / a.len() as f64;
-                    super::output::diverging((e / range).clamp(-1.0, 1.0))
-                })
-                .collect();
-            super::output::write_png_bytes_wh(path, r, r, true, &data)
-        };
-        diff(&p("v_error_naive.png"), &im.naive)?;
-        diff(&p("v_error_designed.png"), &im.designed)?;
+        write_error_png(
+            &p("v_error_naive.png"),
+            &im.naive,
+            &im.target,
+            (r, r),
+            range,
+        )?;
+        write_error_png(
+            &p("v_error_designed.png"),
+            &im.designed,
+            &im.target,
+            (r, r),
+            range,
+        )?;
         blocks.push(Block::Heading(2, "Brute-force validation".into()));
         blocks.push(Block::Grid {
             rows: vec![vec![

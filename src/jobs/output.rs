@@ -80,7 +80,7 @@ pub fn white_point(img: &Image) -> f64 {
 
 /// sRGB opto-electronic transfer function (IEC 61966-2-1).
 #[inline]
-fn srgb(x: f64) -> f64 {
+pub(crate) fn srgb(x: f64) -> f64 {
     if x <= 0.003_130_8 {
         12.92 * x
     } else {
@@ -88,7 +88,7 @@ fn srgb(x: f64) -> f64 {
     }
 }
 
-fn to_u8(x: f64) -> u8 {
+pub(crate) fn to_u8(x: f64) -> u8 {
     (x.clamp(0.0, 1.0) * 255.0).round() as u8
 }
 
