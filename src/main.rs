@@ -1251,8 +1251,10 @@ fn kernel_query(
     }
     let class = vertices;
     let (gmm, clamped, source) = if manual {
+        use svkernel::metamodel::kernel::{manual_kernel, optical_distance, scale_for_density};
         (
-            svkernel::metamodel::kernel::manual_kernel(d),
+            // The density law, as the renderer applies it.
+            scale_for_density(&manual_kernel(optical_distance(d, density)), density),
             false,
             "manual".to_string(),
         )

@@ -138,6 +138,23 @@ fn kernel_query_command() {
         .collect();
     assert_eq!(w, vec![0.25, 0.5, 0.25]);
     assert_eq!(v["components"][1]["sigma"].as_f64(), Some(0.5 + 0.3 * 2.0));
+    // The density law, as the renderer applies it: at ρ = 0.5 the kernel of
+    // optical distance 1, lengths ×2.
+    let (_, v, _) = query(&[
+        "--d",
+        "2",
+        "--albedo",
+        "0.5",
+        "--density",
+        "0.5",
+        "--manual",
+        "--json",
+    ]);
+    assert_eq!(v["components"][1]["t"].as_f64(), Some(1.0));
+    assert_eq!(
+        v["components"][1]["sigma"].as_f64(),
+        Some(2.0 * (0.5 + 0.3))
+    );
     let (_, v, _) = query(&[
         "--d",
         "2",
