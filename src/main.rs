@@ -149,12 +149,136 @@ enum Command {
     /// model's appearance; writes albedo.npy/.png, naive.npy, predicted.npy,
     /// design.json and report.html into --out.
     Design(DesignArgs),
+    /// Models for a medium (η, g): build them, or list the media that have
+    /// them.
+    #[command(subcommand)]
+    Medium(MediumCmd),
     /// Print a built-in scene's TOML (a starting point for your own scene).
     Scene {
         /// stripes, checker, complex, color, density or features.
         #[arg(value_parser = clap::builder::PossibleValuesParser::new(["stripes", "checker", "complex", "color", "density", "features"]))]
         name: String,
     },
+}
+
+/// `svkernel medium`.
+#[derive(Subcommand)]
+enum MediumCmd {
+    /// Simulate and fit the models of a medium: profiles under collimated
+    /// and diffuse light, both bases, kernel tallies and the meta-model;
+    /// then print their accuracy against fresh simulations. Resumable: run
+    /// it again after an interruption.
+    Build {
+        #[arg(long)]
+        eta: f64,
+        #[arg(long, allow_negative_numbers = true)]
+        g: f64,
+        /// Where to build [default: the cache, where renders find it].
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// The cache [default: $SVKERNEL_CACHE, else the platform's cache
+        /// folder, e.g. ~/.cache/svkernel].
+        #[arg(long)]
+        cache: Option<PathBuf>,
+        /// Run only this slice k/N of every simulation (into the same
+        /// --out for all N); a build without --shard then merges and fits.
+        #[arg(long)]
+        shard: Option<String>,
+        /// Seconds between checkpoints of a simulation in progress.
+        #[arg(long, default_value_t = 30.0)]
+        checkpoint_every: f64,
+        /// A small build (seconds; rough models) to try the pipeline.
+        #[arg(long)]
+        quick: bool,
+    },
+    /// List the media with models: built in, presets and cached.
+    List {
+        #[arg(long)]
+        cache: Option<PathBuf>,
+    },
+}
+
+/// `svkernel medium`.
+fn medium(cmd: MediumCmd) -> Result<()> {
+    use svkernel::jobs::medium::{self, BuildConfig, BuildOptions};
+    use svkernel::jobs::shipped::PRESETS;
+    match cmd {
+        MediumCmd::Build {
+            eta,
+            g,
+            out,
+            cache,
+            shard,
+            checkpoint_every,
+            quick,
+        } => {
+            let config = if quick {
+                BuildConfig::quick(eta, g)
+            } else {
+                BuildConfig::standard(eta, g)
+            };
+            config.validate()?;
+            let opts = BuildOptions {
+                progress: true,
+                checkpoint_every: checkpoint_interval(checkpoint_every)?,
+                shard: shard.as_deref().map(Shard::parse).transpose()?,
+            };
+            let built = match out {
+                Some(dir) => medium::build(&config, &dir, &opts)?,
+                None => medium::ensure(&config, &cache_dir(cache.as_deref())?, &opts)?,
+            };
+            let d = &built.doc;
+            println!(
+                "medium η = {}, g = {}: {} ({})",
+                d.eta,
+                d.g,
+                built.dir.display(),
+                if built.cached {
+                    format!("already built, in {:.0} s", d.wall_s)
+                } else {
+                    format!("built in {:.0} s", d.wall_s)
+                }
+            );
+            let parts: Vec<String> = d
+                .stages
+                .iter()
+                .map(|(n, t)| format!("{n} {t:.0} s"))
+                .collect();
+            println!("stages: {}\n", parts.join(", "));
+            println!("{}", d.accuracy.markdown());
+        }
+        MediumCmd::List { cache } => {
+            let models = Models::builtin()?;
+            println!("{:<22} {:>5} {:>5}  where", "medium", "η", "g");
+            println!(
+                "{:<22} {:>5} {:>5}  built in",
+                "default", models.basis.eta, models.basis.g
+            );
+            for p in PRESETS {
+                println!(
+                    "{:<22} {:>5} {:>5}  built in: {}",
+                    format!("preset {}", p.name),
+                    p.eta,
+                    p.g,
+                    p.description
+                );
+            }
+            let dir = cache_dir(cache.as_deref())?;
+            for b in medium::cached(&dir)? {
+                let (rd, l2) = b.doc.accuracy.worst_profile();
+                println!(
+                    "{:<22} {:>5} {:>5}  {} (worst R_d error {:.2} %, radial L2 {:.2} %)",
+                    "cached",
+                    b.doc.eta,
+                    b.doc.g,
+                    b.dir.display(),
+                    100.0 * rd,
+                    100.0 * l2
+                );
+            }
+        }
+    }
+    Ok(())
 }
 
 /// `svkernel design`.
@@ -380,7 +504,8 @@ struct RenderArgs {
     #[arg(long)]
     no_analysis: bool,
     /// Clamp `learned` outside the meta-model's trained albedo range
-    /// instead of simulating and fitting the missing range.
+    /// instead of simulating and fitting the missing range; refuse a medium
+    /// without models instead of building them.
     #[arg(long)]
     no_extend: bool,
     /// Kernel-method variant: not density-scaled aggregation.
@@ -1561,6 +1686,7 @@ fn main() -> std::process::ExitCode {
         }),
         Command::Demo { out, paths, models } => demo(out, paths, models),
         Command::Design(a) => design(a),
+        Command::Medium(m) => medium(m),
         Command::Scene { name } => {
             print!(
                 "{}",

@@ -535,7 +535,11 @@ fn range_effect(
     // Albedos to three decimals in the text.
     let r = |v: f64| (v * 1e3).round() / 1e3;
     let (lo, hi) = (r(lo), r(hi));
-    let model = opts.models.meta.all.clone();
+    // The scene medium's meta-model (found or built by the render).
+    let models = opts
+        .models
+        .for_medium(scene.eta, scene.g, opts.cache.as_deref(), false)?;
+    let model = models.meta.all.clone();
     let trained = model.alpha_range;
     let effect = range_albedo_effect(plan, opts, extension, (lo, hi), trained, r);
     // The other axis of the range: the optical pair distances the image can

@@ -20,6 +20,7 @@ pub mod experiments;
 pub mod extend;
 pub mod fit_kernels;
 pub mod fit_profiles;
+pub mod medium;
 pub mod output;
 pub mod plot;
 pub mod render;

@@ -378,8 +378,28 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
         opts.targets.clone()
     };
     let needs_model = targets.iter().any(|t| matches!(t, Target::Model(_)));
+    // The scene's medium: its models are the given ones, a preset's, or
+    // built on demand into the cache ([`super::medium`]).
+    let models = if needs_model {
+        opts.models
+            .for_medium(scene.eta, scene.g, opts.cache.as_deref(), opts.run.progress)
+            .map_err(|e| match e {
+                Error::Param {
+                    name: "medium",
+                    value,
+                    allowed,
+                } => Error::format(
+                    &scene.path,
+                    "medium",
+                    format!("{value}: no models for this medium: {allowed}"),
+                ),
+                e => e,
+            })?
+    } else {
+        opts.models.clone()
+    };
     let basis = if needs_model {
-        let m = &opts.models;
+        let m = &models;
         let want = scene.light.incidence();
         let (model, path) = m.basis_for(want, scene.observable);
         if model.observable != scene.observable {
@@ -410,12 +430,17 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
                 path,
                 "eta/g",
                 format!(
-                    "basis is for η = {}, g = {} but the scene {} has η = {}, g = {}",
+                    "basis is for η = {}, g = {} but the scene {} has η = {}, g = {}{}",
                     model.eta,
                     model.g,
                     scene.path.display(),
                     scene.eta,
-                    scene.g
+                    scene.g,
+                    if scene.observable == crate::forward::medium::Observable::Radiance {
+                        " (the radiance along the normal is modelled for the built-in medium only)"
+                    } else {
+                        ""
+                    }
                 ),
             ));
         }
@@ -424,7 +449,7 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
         None
     };
     let meta = if targets.contains(&Target::Model(Method::Learned)) {
-        Some(opts.models.meta.clone())
+        Some(models.meta.clone())
     } else {
         None
     };
@@ -435,13 +460,8 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
         (Some(m), Some(cache)) if !plan.homogeneous => {
             match extend::missing(plan.albedo_range, m.all.alpha_range) {
                 Some(missing) => {
-                    let (done, model) = extend::ensure(
-                        m,
-                        &opts.models.training,
-                        missing,
-                        cache,
-                        opts.run.progress,
-                    )?;
+                    let (done, model) =
+                        extend::ensure(m, &models.training, missing, cache, opts.run.progress)?;
                     (Some(done), Some(Arc::new(model)))
                 }
                 None => (None, None),

@@ -225,6 +225,148 @@ impl Models {
     }
 }
 
+impl Models {
+    /// The models of the medium (η, g): these if they are for it, else a
+    /// preset's ([`PRESETS`]), else the medium's models from `cache`, built
+    /// there first if absent ([`crate::jobs::medium::ensure`]; progress on
+    /// stderr if `progress`). `None` for `cache` refuses a medium without
+    /// models. Bases of the radiance along the normal exist for the
+    /// built-in medium only; other media keep the built-in ones, which the
+    /// render refuses for them by name.
+    pub fn for_medium(
+        &self,
+        eta: f64,
+        g: f64,
+        cache: Option<&Path>,
+        progress: bool,
+    ) -> Result<Models> {
+        if same_medium((self.basis.eta, self.basis.g), (eta, g)) {
+            return Ok(self.clone());
+        }
+        if let Some(p) = PRESETS.iter().find(|p| same_medium((p.eta, p.g), (eta, g))) {
+            return p.models(self);
+        }
+        let Some(cache) = cache else {
+            return Err(Error::param(
+                "medium",
+                format!("eta = {eta}, g = {g}"),
+                "a medium with models (the built-in one, a preset, or one built into the cache: \
+                 `svkernel medium build`)",
+            ));
+        };
+        let config = crate::jobs::medium::BuildConfig::standard(eta, g);
+        let opts = crate::jobs::medium::BuildOptions {
+            progress,
+            ..Default::default()
+        };
+        let built = crate::jobs::medium::ensure(&config, cache, &opts)?;
+        Ok(self.with_medium(built.basis, built.basis_diffuse, built.meta, &built.dir))
+    }
+
+    /// These models with the exitance bases and the meta-model of another
+    /// medium, from `dir`.
+    fn with_medium(
+        &self,
+        basis: BasisModel,
+        basis_diffuse: BasisModel,
+        meta: MetaModelFile,
+        dir: &Path,
+    ) -> Models {
+        Models {
+            basis: Arc::new(basis),
+            basis_origin: dir.join("basis.json"),
+            basis_diffuse: Arc::new(basis_diffuse),
+            basis_diffuse_origin: dir.join("basis_diffuse.json"),
+            training: meta_training(&meta, &self.training),
+            meta: Arc::new(meta),
+            meta_origin: dir.join("metamodel.json"),
+            ..self.clone()
+        }
+    }
+}
+
+/// The training configuration of another medium's meta-model: the
+/// built-in one with that medium's η and g (the extension of its albedo
+/// range simulates with it).
+fn meta_training(meta: &MetaModelFile, base: &KernelConfig) -> KernelConfig {
+    KernelConfig {
+        eta: meta.eta,
+        g: meta.g,
+        ..base.clone()
+    }
+}
+
+/// Whether two (η, g) are the same medium (to 1e-9).
+pub fn same_medium(a: (f64, f64), b: (f64, f64)) -> bool {
+    (a.0 - b.0).abs() < 1e-9 && (a.1 - b.1).abs() < 1e-9
+}
+
+/// A medium whose models ship with svkernel, built by
+/// [`crate::jobs::medium::build`] with [`crate::jobs::medium::BuildConfig::standard`]
+/// (`tools/make_presets.sh`); `data/media/<name>/` holds them and their
+/// accuracy.
+#[derive(Clone, Copy, Debug)]
+pub struct Preset {
+    pub name: &'static str,
+    pub description: &'static str,
+    pub eta: f64,
+    pub g: f64,
+    basis: &'static str,
+    basis_diffuse: &'static str,
+    meta: &'static str,
+    /// `medium.json`: the build and its accuracy.
+    pub manifest: &'static str,
+}
+
+impl Preset {
+    /// The preset's models (radiance bases: `base`'s).
+    pub fn models(&self, base: &Models) -> Result<Models> {
+        let dir = PathBuf::from(format!("(built-in preset {})", self.name));
+        let origin = |f: &str| dir.join(f);
+        let basis: BasisModel = crate::doc::from_json(self.basis, &origin("basis.json"))?;
+        let diffuse: BasisModel =
+            crate::doc::from_json(self.basis_diffuse, &origin("basis_diffuse.json"))?;
+        let meta: MetaModelFile = crate::doc::from_json(self.meta, &origin("metamodel.json"))?;
+        Ok(base.with_medium(basis, diffuse, meta, &dir))
+    }
+}
+
+macro_rules! preset {
+    ($name:literal, $description:literal, $eta:expr, $g:expr) => {
+        Preset {
+            name: $name,
+            description: $description,
+            eta: $eta,
+            g: $g,
+            basis: include_str!(concat!("../../data/media/", $name, "/basis.json")),
+            basis_diffuse: include_str!(concat!("../../data/media/", $name, "/basis_diffuse.json")),
+            meta: include_str!(concat!("../../data/media/", $name, "/metamodel.json")),
+            manifest: include_str!(concat!("../../data/media/", $name, "/medium.json")),
+        }
+    };
+}
+
+/// The preset media.
+pub const PRESETS: &[Preset] = &[
+    preset!(
+        "skin",
+        "forward-scattering, skin- or milk-like (η = 1.4, g = 0.8)",
+        1.4,
+        0.8
+    ),
+    preset!(
+        "index-matched",
+        "isotropic and index-matched (η = 1, g = 0), the exact oracles' medium",
+        1.0,
+        0.0
+    ),
+];
+
+/// The preset called `name`.
+pub fn preset(name: &str) -> Option<&'static Preset> {
+    PRESETS.iter().find(|p| p.name == name)
+}
+
 /// The cache folder: `dir` if given, else `SVKERNEL_CACHE`, else the
 /// platform's cache folder + `svkernel` (e.g. `~/.cache/svkernel`).
 pub fn cache_dir(dir: Option<&Path>) -> Result<PathBuf> {
