@@ -286,14 +286,20 @@ fn medium(cmd: MediumCmd) -> Result<()> {
 struct DesignArgs {
     /// The target appearance: .png (sRGB), .exr or .npy ((ny, nx) or (ny, nx, 3)).
     target: PathBuf,
+    #[arg(long, required_unless_present = "export_check")]
+    out: Option<PathBuf>,
+    /// Instead of designing, write the appearance problem of the target's
+    /// first channel at its naive map (grid, offsets, basis coefficients,
+    /// blur levels, kernel reads, M and its exact gradient) to this JSON
+    /// file, for tools/design_grad_check.py.
     #[arg(long)]
-    out: PathBuf,
+    export_check: Option<PathBuf>,
     /// Texel size in MFP.
     #[arg(long, default_value_t = 0.05)]
     texel: f64,
     /// The printable albedo range LO,HI.
-    #[arg(long, default_value = "0.2,0.99", value_delimiter = ',', num_args = 2)]
-    albedo_range: Vec<f64>,
+    #[arg(long, default_value = "0.2,0.99", value_parser = parse_pair::<f64>)]
+    albedo_range: [f64; 2],
     /// uniform, or disk:R (a disk of radius R MFP at the texture's centre).
     #[arg(long, default_value = "uniform")]
     illumination: String,
@@ -313,8 +319,8 @@ struct DesignArgs {
     #[arg(long, default_value = "learned")]
     method: String,
     /// Quadrature rings and angles per ring of the appearance estimate.
-    #[arg(long, default_value = "12,2", value_delimiter = ',', num_args = 2)]
-    quadrature: Vec<usize>,
+    #[arg(long, default_value = "12,2", value_parser = parse_pair::<usize>)]
+    quadrature: [usize; 2],
     /// Validate by brute force with this many reference paths per map (e.g.
     /// 5e7): the naive map and the maps designed with learned, factorized
     /// and point, against the target.
@@ -337,7 +343,7 @@ fn design(a: DesignArgs) -> Result<()> {
     let settings = Settings {
         method: svkernel::render::svbssrdf::Method::parse(&a.method)?,
         texel: a.texel,
-        albedo_range: [a.albedo_range[0], a.albedo_range[1]],
+        albedo_range: a.albedo_range,
         illumination: Illumination::parse(&a.illumination)?,
         warm_start: a.warm_start,
         iterations: a.iterations as usize,
@@ -350,7 +356,7 @@ fn design(a: DesignArgs) -> Result<()> {
     };
     let opts = DesignOptions {
         target: a.target,
-        out: a.out.clone(),
+        out: a.out.clone().unwrap_or_default(),
         settings,
         validate: a.validate,
         validate_resolution: a.validate_resolution,
@@ -358,6 +364,11 @@ fn design(a: DesignArgs) -> Result<()> {
         models: a.models.load()?,
         progress: true,
     };
+    if let Some(file) = &a.export_check {
+        svkernel::jobs::design::export_check(&opts, file)?;
+        println!("wrote {}", file.display());
+        return Ok(());
+    }
     let doc = run(&opts)?;
     println!(
         "designed {}×{}×{} in {:.1} s ({} evaluations; set-up {:.1} s); model error against the target: naive {:.2} %, designed {:.2} %",
@@ -397,7 +408,7 @@ fn design(a: DesignArgs) -> Result<()> {
     }
     println!(
         "wrote {0}/albedo.npy, albedo.png, naive.npy, predicted.npy, design.json, report.html",
-        a.out.display()
+        opts.out.display()
     );
     Ok(())
 }
@@ -797,6 +808,19 @@ struct ProfileArgs {
 }
 
 /// Parses a count such as `1000000`, `1e6` or `2.5e7`.
+/// `A,B` (two values of one type).
+fn parse_pair<T: std::str::FromStr>(s: &str) -> std::result::Result<[T; 2], String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let [a, b] = parts.as_slice() else {
+        return Err(format!("'{s}' is not two comma-separated values"));
+    };
+    let parse = |v: &str| {
+        v.parse::<T>()
+            .map_err(|_| format!("'{v}' in '{s}' is not a number"))
+    };
+    Ok([parse(a)?, parse(b)?])
+}
+
 fn parse_count(s: &str) -> std::result::Result<u64, String> {
     let v: f64 = s
         .trim()

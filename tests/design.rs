@@ -2,6 +2,8 @@
 //! design is complete), its validation by brute force, and bad input
 //! refused by name.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use svkernel::design::Settings;
 use svkernel::design::appearance::Quadrature;
@@ -101,4 +103,64 @@ fn bad_targets_are_refused_naming_the_file() {
         .to_string();
     assert!(e.contains("target.txt") && e.contains(".png"), "{e}");
     assert!(!d.join("out").exists(), "no output for a refused target");
+}
+
+/// `design --export-check` from the command line, with the paired options
+/// written as the help shows them (`LO,HI`, `RINGS,ANGLES`): the problem's
+/// definition and the model's M and gradient, one per texel, and no design.
+#[test]
+fn export_check_writes_the_problem_from_the_command_line() {
+    let d = dir("export");
+    let t = d.join("target.npy");
+    target(&t);
+    let file = d.join("problem.json");
+    let o = common::bin()
+        .args([
+            "design",
+            t.to_str().unwrap(),
+            "--export-check",
+            file.to_str().unwrap(),
+        ])
+        .args([
+            "--texel",
+            "0.2",
+            "--albedo-range",
+            "0.3,0.95",
+            "--quadrature",
+            "5,3",
+        ])
+        .args(["--illumination", "disk:1.5"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let p: serde_json::Value = serde_json::from_slice(&std::fs::read(&file).unwrap()).unwrap();
+    assert_eq!(p["format"], "svkernel.design-check");
+    assert_eq!((p["nx"].as_u64(), p["ny"].as_u64()), (Some(24), Some(20)));
+    assert_eq!(p["offsets"].as_array().unwrap().len(), 15);
+    assert_eq!(p["illumination"]["radius"], 1.5);
+    let alpha: Vec<f64> = serde_json::from_value(p["alpha"].clone()).unwrap();
+    assert!(
+        alpha.iter().all(|a| (0.3..=0.95).contains(a)),
+        "naive map within the range"
+    );
+    for key in ["m", "gradient", "g"] {
+        assert_eq!(p[key].as_array().unwrap().len(), 24 * 20, "{key}");
+    }
+    assert!(!p["reads_all"].as_array().unwrap().is_empty());
+    // A malformed pair is refused naming the option.
+    let o = common::bin()
+        .args([
+            "design",
+            t.to_str().unwrap(),
+            "--export-check",
+            file.to_str().unwrap(),
+        ])
+        .args(["--albedo-range", "0.3"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("--albedo-range"),
+        "{err}"
+    );
 }

@@ -330,6 +330,83 @@ impl Appearance {
         Anchor { bins }
     }
 
+    /// The whole problem of Σ_e g_e·M_e at map `alpha` for an independent
+    /// re-implementation (`tools/design_grad_check.py`, in JAX): the grid,
+    /// the light, the offsets, the basis model's coefficients, the stack's
+    /// levels (their σ and node grids, not their values), and per (texel,
+    /// offset) the kernel reads that `anchor` selects; with this module's M
+    /// and gradient. `basis` is the model this appearance was built from.
+    pub fn export_check(
+        &self,
+        basis: &BasisModel,
+        alpha: &[f64],
+        anchor: &Anchor,
+        g: &[f64],
+    ) -> serde_json::Value {
+        use crate::metamodel::basis::{B_MAX, B_MIN};
+        use crate::render::svbssrdf::TABLE_NODES;
+        let lin = self.linearize(alpha, anchor);
+        let gradient = self.gradient(&lin, anchor, g);
+        let n_k = self.offsets.len();
+        // Reads as rows [e, o, shift x, shift y, σ, share] of one class,
+        // at the anchor's bin `which` (0: vertex kernels, 1: all-vertex).
+        let reads = |plans: Option<&Plans>, which: usize| {
+            let (Some(plans), Some(stack)) = (plans, self.grid.as_ref()) else {
+                return Vec::new();
+            };
+            let mut rows = Vec::new();
+            for e in 0..self.len() {
+                for o in 0..n_k {
+                    for r in plans.get(o, anchor.bins[e * n_k + o][which]) {
+                        let (l, t) = r.level;
+                        rows.push([
+                            e as f64,
+                            o as f64,
+                            r.shift[0],
+                            r.shift[1],
+                            stack.level_sigma(l, t),
+                            r.share,
+                        ]);
+                    }
+                }
+            }
+            rows
+        };
+        let k = self.kernels.as_ref();
+        let levels = self.grid.as_ref().map(|s| s.levels_json());
+        serde_json::json!({
+            "format": "svkernel.design-check",
+            "method": self.method.name(),
+            "nx": self.nx,
+            "ny": self.ny,
+            "texel": self.texel,
+            "illumination": match self.illumination {
+                Illumination::Uniform => serde_json::json!({"kind": "uniform"}),
+                Illumination::Disk(r) => serde_json::json!({"kind": "disk", "radius": r}),
+            },
+            "r_min": R_MIN,
+            "basis": {
+                "degree": basis.degree,
+                "ln_a": basis.ln_a,
+                "ln_b": basis.ln_b,
+                "b_min": B_MIN,
+                "b_max": B_MAX,
+                "single": basis.single,
+                "table_nodes": TABLE_NODES,
+            },
+            "offsets": self.offsets.iter().map(|o| [o.delta[0], o.delta[1], o.weight]).collect::<Vec<_>>(),
+            "levels": levels,
+            "reads_all": reads(k.map(|k| &k.all), 1),
+            "reads_last": reads(k.map(|k| &k.last), 0),
+            "reads_first": reads(k.and_then(|k| k.first.as_ref()), 0),
+            "has_first": k.is_some_and(|k| k.first.is_some()),
+            "alpha": alpha,
+            "g": g,
+            "m": lin.m,
+            "gradient": gradient,
+        })
+    }
+
     /// The appearance M of map `alpha` (row-major, one channel) under
     /// `anchor` (from [`Self::anchor`]; ignored by `point` and
     /// `factorized`).

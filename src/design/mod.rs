@@ -506,6 +506,18 @@ impl<'a> Designer<'a> {
         self.target.len()
     }
 
+    /// The appearance problem of channel `c` at its naive map with the
+    /// least-squares weights g = M − target, for an independent check of
+    /// the gradient ([`Appearance::export_check`]; `basis` is the model
+    /// the designer was built with).
+    pub fn export_check(&self, basis: &BasisModel, c: usize) -> serde_json::Value {
+        let alpha = &self.naive[c];
+        let anchor = self.app.anchor(alpha);
+        let m = self.app.appearance(alpha, &anchor);
+        let g: Vec<f64> = m.iter().zip(&self.target[c]).map(|(m, t)| m - t).collect();
+        self.app.export_check(basis, alpha, &anchor, &g)
+    }
+
     /// The naive maps.
     pub fn naive(&self) -> &[Vec<f64>] {
         &self.naive

@@ -305,6 +305,28 @@ impl BlurStack {
         (l, ((s - s0) / (s1 - s0)).clamp(0.0, 1.0))
     }
 
+    /// The width that the blend `(l, t)` of [`Self::level_of`] stands for:
+    /// σ² = (1 − t)·σ_l² + t·σ_{l+1}² (its inverse).
+    pub fn level_sigma(&self, l: usize, t: f64) -> f64 {
+        let (s0, s1) = (self.levels[l].sigma, self.levels[l + 1].sigma);
+        ((1.0 - t) * s0 * s0 + t * s1 * s1).sqrt()
+    }
+
+    /// The levels' widths and node grids (not their values), for
+    /// re-implementations: per level σ, the node (0, 0) at (x0, −u0), the
+    /// spacing h, the node counts and the offset into the node buffer.
+    pub fn levels_json(&self) -> serde_json::Value {
+        self.levels
+            .iter()
+            .map(|l| {
+                serde_json::json!({
+                    "sigma": l.sigma, "x0": l.x0, "u0": l.u0, "h": l.h,
+                    "nx": l.nx, "ny": l.ny, "offset": l.offset,
+                })
+            })
+            .collect()
+    }
+
     /// The taps at `mu` on the levels `(l, t)` of [`Self::level_of`].
     #[inline]
     pub fn taps_at(&self, mu: [f64; 2], (l, t): (usize, f64)) -> Taps {

@@ -145,17 +145,7 @@ pub struct DesignDoc {
 pub fn run(opts: &DesignOptions) -> Result<DesignDoc> {
     let start = Instant::now();
     let s = &opts.settings;
-    s.validate()?;
-    let maps = super::scene::load_image(&opts.target, s.texel)?;
-    let (nx, ny) = (maps[0].nx, maps[0].ny);
-    let target: Vec<Vec<f64>> = maps.iter().map(|m| m.values.clone()).collect();
-    if let Some(v) = target.iter().flatten().find(|v| !(0.0..=1.0).contains(*v)) {
-        return Err(Error::format(
-            &opts.target,
-            "(values)",
-            format!("{v}: a target holds reflectances in [0, 1]"),
-        ));
-    }
+    let (target, nx, ny) = load_target(opts)?;
     let staging = staging_dir(&opts.out)?;
     let designed = design_with(opts, &staging, s, &target, nx, ny)?;
     let mut validation = None;
@@ -190,6 +180,41 @@ pub fn run(opts: &DesignOptions) -> Result<DesignDoc> {
     };
     write_outputs(opts, &staging, &doc, &designed, &target, nx, ny)?;
     Ok(doc)
+}
+
+/// The target's channels (row-major reflectances), nx and ny, with the
+/// settings checked.
+fn load_target(opts: &DesignOptions) -> Result<(Vec<Vec<f64>>, usize, usize)> {
+    opts.settings.validate()?;
+    let maps = super::scene::load_image(&opts.target, opts.settings.texel)?;
+    let (nx, ny) = (maps[0].nx, maps[0].ny);
+    let target: Vec<Vec<f64>> = maps.iter().map(|m| m.values.clone()).collect();
+    if let Some(v) = target.iter().flatten().find(|v| !(0.0..=1.0).contains(*v)) {
+        return Err(Error::format(
+            &opts.target,
+            "(values)",
+            format!("{v}: a target holds reflectances in [0, 1]"),
+        ));
+    }
+    Ok((target, nx, ny))
+}
+
+/// Writes to `file` the appearance problem of the target's first channel
+/// at its naive map under the settings' model, with the model's M and
+/// exact gradient, for `tools/design_grad_check.py` (an independent JAX
+/// implementation that differentiates it automatically).
+pub fn export_check(opts: &DesignOptions, file: &Path) -> Result<()> {
+    let (target, nx, ny) = load_target(opts)?;
+    let models = &opts.models;
+    let designer = Designer::new(
+        &target,
+        nx,
+        ny,
+        &models.basis,
+        Some(&models.meta),
+        &opts.settings,
+    )?;
+    super::store::write_json_compact_atomic(file, &designer.export_check(&models.basis, 0))
 }
 
 /// The staging folder `.NAME.partial` beside `out` (created if missing).
@@ -707,7 +732,8 @@ fn write_outputs(
                     "v_error_designed.png",
                 ),
             ]],
-            width: 256,
+            // Five tiles on one row within the page's width.
+            width: 224,
         });
         blocks.push(Block::Para(format!(
             "Reference walk, {} paths per map, {}² pixels, collimated disk light of radius \

@@ -32,14 +32,27 @@ fn folder_of(path: &Path) -> Result<&Path> {
     Ok(dir)
 }
 
+/// The temporary files that outputs are written to before they are renamed
+/// into place: `.tmp-*`, created with mode 0666 less the umask, as a plain
+/// file would be (not the 0600 of a private temporary file).
+fn temp_builder() -> tempfile::Builder<'static, 'static> {
+    let mut b = tempfile::Builder::new();
+    b.prefix(".tmp-");
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        b.permissions(std::fs::Permissions::from_mode(0o666));
+    }
+    b
+}
+
 /// Like [`write_atomic`], with a writer callback.
 pub fn write_atomic_with(
     path: &Path,
     write: impl FnOnce(&mut std::fs::File) -> std::io::Result<()>,
 ) -> Result<()> {
     let dir = folder_of(path)?;
-    let mut tmp = tempfile::Builder::new()
-        .prefix(".tmp-")
+    let mut tmp = temp_builder()
         .tempfile_in(dir)
         .map_err(|e| Error::io(dir, e))?;
     write(tmp.as_file_mut())
@@ -61,8 +74,7 @@ pub fn write_atomic_path<E: std::fmt::Display>(
         .extension()
         .map(|e| format!(".{}", e.to_string_lossy()))
         .unwrap_or_default();
-    let tmp = tempfile::Builder::new()
-        .prefix(".tmp-")
+    let tmp = temp_builder()
         .suffix(&ext)
         .tempfile_in(dir)
         .map_err(|e| Error::io(dir, e))?
@@ -203,6 +215,17 @@ mod tests {
         // No temporary file left behind.
         let n = std::fs::read_dir(p.parent().unwrap()).unwrap().count();
         assert_eq!(n, 1);
+        // Created as a plain file would be: mode 0666 less the umask (which
+        // never removes the owner's read bit), not 0600.
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            let probe = dir.join("probe");
+            std::fs::write(&probe, "").unwrap();
+            let mode = |f: &Path| std::fs::metadata(f).unwrap().permissions().mode() & 0o777;
+            assert_eq!(mode(&p), mode(&probe));
+            std::fs::remove_file(&probe).unwrap();
+        }
         // A truncated file names itself.
         std::fs::write(&p, "{\"a\": ").unwrap();
         let e = read_json::<serde_json::Value>(&p).unwrap_err().to_string();

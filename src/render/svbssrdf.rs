@@ -285,7 +285,7 @@ impl Variant {
 }
 
 /// Nodes of [`BasisTable`] in the albedo coordinate x = √(1 − α).
-const TABLE_NODES: usize = 8192;
+pub const TABLE_NODES: usize = 8192;
 
 /// The basis model tabulated for fast evaluation: ln(A_k/(2πα²)) and B_k at
 /// `TABLE_NODES` (8192) equally spaced values of x = √(1 − α), linearly
