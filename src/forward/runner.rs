@@ -215,7 +215,12 @@ pub fn run<T: Tally>(
         total = ck.tally;
         wall_before = ck.wall_s;
     }
-    let bar = crate::progress::Task::new(opts.progress, "simulating", range.1 - range.0, "chunks");
+    let label = if next > range.0 {
+        "simulating (resumed from its checkpoint)"
+    } else {
+        "simulating"
+    };
+    let bar = crate::progress::Task::new(opts.progress, label, range.1 - range.0, "chunks");
     bar.set(next - range.0);
     let mut last_checkpoint = Instant::now();
     while next < range.1 {
