@@ -639,6 +639,18 @@ fn profile(
         write_json_atomic(file, &pilot)?;
         return Ok(pilot);
     }
+    let (ckpt, run) = run_options(file, opts);
+    let (tally, wall_s) = pc.run(opts.shard, &run)?;
+    let chunks = vec![chunk_range(pc.paths, opts.shard)];
+    let doc = ProfileDoc::new(pc, opts.shard, chunks, tally, wall_s, Provenance::current());
+    write_json_atomic(file, &doc)?;
+    remove(&ckpt)?;
+    Ok(doc)
+}
+
+/// The checkpoint beside `file` and how to run the simulation that writes
+/// `file`: resuming from that checkpoint.
+fn run_options(file: &Path, opts: &BuildOptions) -> (PathBuf, RunOptions) {
     let ckpt = checkpoint_of(file);
     let run = RunOptions {
         checkpoint: Some(FileCheckpoint::arc(&ckpt)),
@@ -646,12 +658,7 @@ fn profile(
         resume: true,
         progress: opts.progress,
     };
-    let (tally, wall_s) = pc.run(opts.shard, &run)?;
-    let chunks = vec![chunk_range(pc.paths, opts.shard)];
-    let doc = ProfileDoc::new(pc, opts.shard, chunks, tally, wall_s, Provenance::current());
-    write_json_atomic(file, &doc)?;
-    remove(&ckpt)?;
-    Ok(doc)
+    (ckpt, run)
 }
 
 /// The kernel tallies, or their document if `file` holds it already.
@@ -667,13 +674,7 @@ fn kernel_tally(config: &BuildConfig, file: &Path, opts: &BuildOptions) -> Resul
         ..Default::default()
     };
     let (kc, _) = config.kernels.plan(&plan, false)?;
-    let ckpt = checkpoint_of(file);
-    let run = RunOptions {
-        checkpoint: Some(FileCheckpoint::arc(&ckpt)),
-        checkpoint_every: opts.checkpoint_every,
-        resume: true,
-        progress: opts.progress,
-    };
+    let (ckpt, run) = run_options(file, opts);
     let (tally, wall_s) = kc.run(opts.shard, &run)?;
     let chunks = vec![crate::forward::runner::shard_range(kc.chunks(), opts.shard)];
     let doc = KernelDoc::new(kc, opts.shard, chunks, tally, wall_s, Provenance::current());
