@@ -463,6 +463,9 @@ pub fn compare_scene(
     if let Some((truth, spps, paths)) = &settings.curves {
         check_budgets(*truth, spps, paths)?;
     }
+    // The scene medium's models, found (or built) once for every render
+    // below.
+    let opts = &super::render::with_scene_models(scene, opts)?;
     let mut plan = analyse(scene, opts.analysis);
     let passes = render_scene(scene, opts)?;
     let render = write_outputs(scene, opts, &passes)?;
@@ -535,11 +538,8 @@ fn range_effect(
     // Albedos to three decimals in the text.
     let r = |v: f64| (v * 1e3).round() / 1e3;
     let (lo, hi) = (r(lo), r(hi));
-    // The scene medium's meta-model (found or built by the render).
-    let models = opts
-        .models
-        .for_medium(scene.eta, scene.g, opts.cache.as_deref(), false)?;
-    let model = models.meta.all.clone();
+    // The scene medium's meta-model (`compare_scene` resolved the models).
+    let model = opts.models.meta.all.clone();
     let trained = model.alpha_range;
     let effect = range_albedo_effect(plan, opts, extension, (lo, hi), trained, r);
     // The other axis of the range: the optical pair distances the image can

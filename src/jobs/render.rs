@@ -367,37 +367,61 @@ fn passes(scene: &Scene) -> Vec<(String, Option<f64>)> {
     }
 }
 
-/// Renders every pass of `scene` (module docs). Progress lines go to stderr
-/// when `opts.run.progress` is set.
-pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
-    let targets = if opts.targets.is_empty() {
+/// What a render of `scene` under `opts` draws: `opts.targets`, else the
+/// reference and the scene's methods.
+fn targets_of(scene: &Scene, opts: &RenderOptions) -> Vec<Target> {
+    if opts.targets.is_empty() {
         let mut t: Vec<Target> = scene.methods.iter().map(|&m| Target::Model(m)).collect();
         t.insert(0, Target::Reference);
         t
     } else {
         opts.targets.clone()
-    };
+    }
+}
+
+/// `opts` with the models of the scene's medium, if its targets use a
+/// model: the given ones, a preset's, or built on demand into the cache
+/// ([`super::medium`]). A caller that renders one scene many times
+/// resolves them once with this.
+pub fn with_scene_models(scene: &Scene, opts: &RenderOptions) -> Result<RenderOptions> {
+    let needs_model = targets_of(scene, opts)
+        .iter()
+        .any(|t| matches!(t, Target::Model(_)));
+    Ok(RenderOptions {
+        models: scene_models(scene, opts, needs_model)?,
+        ..opts.clone()
+    })
+}
+
+/// The models of the scene's medium ([`with_scene_models`]); `opts.models`
+/// themselves if no model is needed. A medium without models is an error
+/// naming the scene and `medium`.
+fn scene_models(scene: &Scene, opts: &RenderOptions, needs_model: bool) -> Result<Models> {
+    if !needs_model {
+        return Ok(opts.models.clone());
+    }
+    opts.models
+        .for_medium(scene.eta, scene.g, opts.cache.as_deref(), opts.run.progress)
+        .map_err(|e| match e {
+            Error::Param {
+                name: "medium",
+                value,
+                allowed,
+            } => Error::format(
+                &scene.path,
+                "medium",
+                format!("{value}: no models for this medium: {allowed}"),
+            ),
+            e => e,
+        })
+}
+
+/// Renders every pass of `scene` (module docs). Progress lines go to stderr
+/// when `opts.run.progress` is set.
+pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
+    let targets = targets_of(scene, opts);
     let needs_model = targets.iter().any(|t| matches!(t, Target::Model(_)));
-    // The scene's medium: its models are the given ones, a preset's, or
-    // built on demand into the cache ([`super::medium`]).
-    let models = if needs_model {
-        opts.models
-            .for_medium(scene.eta, scene.g, opts.cache.as_deref(), opts.run.progress)
-            .map_err(|e| match e {
-                Error::Param {
-                    name: "medium",
-                    value,
-                    allowed,
-                } => Error::format(
-                    &scene.path,
-                    "medium",
-                    format!("{value}: no models for this medium: {allowed}"),
-                ),
-                e => e,
-            })?
-    } else {
-        opts.models.clone()
-    };
+    let models = scene_models(scene, opts, needs_model)?;
     let basis = if needs_model {
         let m = &models;
         let want = scene.light.incidence();
