@@ -136,11 +136,25 @@ pub fn aggregation_row(
     per_config: Option<&Gmm>,
     meta: &Gmm,
 ) -> AggregationRow {
+    let mut row = aggregation_row_of(class, cell, per_config, &histogram_of(meta, &cell.hist));
+    row.plane = cell.plane.map(|data| [data, PlaneMoments::of(meta)]);
+    row
+}
+
+/// [`aggregation_row`] for a kernel given by its masses on the cell's grid
+/// (`meta_h`, a histogram on the cell histogram's bins): a kernel that is
+/// not a mixture, such as one warped across a density step. No whole-plane
+/// moments.
+pub fn aggregation_row_of(
+    class: VertexClass,
+    cell: &Cell,
+    per_config: Option<&Gmm>,
+    meta_h: &KernelHistogram,
+) -> AggregationRow {
     let h = &cell.hist;
     let manual = histogram_of(&manual_kernel(cell.d), h);
-    let meta_h = histogram_of(meta, h);
     let pc = per_config.map(|g| histogram_of(g, h));
-    let mut list = vec![h, &meta_h, &manual];
+    let mut list = vec![h, meta_h, &manual];
     if let Some(p) = &pc {
         list.push(p);
     }
@@ -168,6 +182,6 @@ pub fn aggregation_row(
         manual: err(2),
         noise,
         window: 1.0 - h.overflow,
-        plane: cell.plane.map(|data| [data, PlaneMoments::of(meta)]),
+        plane: None,
     }
 }

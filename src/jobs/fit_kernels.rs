@@ -368,22 +368,143 @@ impl crate::forward::walk::DensityField for DensityStep {
 
 /// One row of the density-step experiment: aggregation errors (RMS of α_t
 /// over random textures, against the measured kernel) of the homogeneous
-/// meta-model kernel evaluated at several effective densities ρ̄.
+/// meta-model kernel evaluated at several effective densities ρ̄, of the
+/// renderer's density-weighted rule, and of the optical warp.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct StepRow {
     pub alpha: f64,
     pub d: f64,
     pub paths: u64,
-    /// (label, ρ̄, aggregation error).
+    /// (label, ρ̄, aggregation error); ρ̄ is the density at which the
+    /// homogeneous kernel was evaluated (1 for the warps, which evaluate it
+    /// at the optical distance and unit density).
     pub predictions: Vec<(String, f64, f64)>,
     pub noise: f64,
 }
 
+/// The optical coordinate across a [`DensityStep`] on the pair axis:
+/// τ(t) = ∫₀ᵗ ρ (MFP at unit density), x_i at t = 0.
+struct StepAxis<'a>(&'a DensityStep);
+
+impl StepAxis<'_> {
+    fn rho(&self, t: f64) -> f64 {
+        if t < self.0.x_step {
+            self.0.left
+        } else {
+            self.0.right
+        }
+    }
+    fn tau(&self, t: f64) -> f64 {
+        let s = self.0;
+        if t < s.x_step {
+            s.left * t
+        } else {
+            s.left * s.x_step + s.right * (t - s.x_step)
+        }
+    }
+    fn inverse(&self, tau: f64) -> f64 {
+        let s = self.0;
+        let at_step = s.left * s.x_step;
+        if tau < at_step {
+            tau / s.left
+        } else {
+            s.x_step + (tau - at_step) / s.right
+        }
+    }
+    /// The share of [t0, t1] left of the step.
+    fn left_share(&self, t0: f64, t1: f64) -> f64 {
+        ((self.0.x_step - t0) / (t1 - t0)).clamp(0.0, 1.0)
+    }
+    /// The mean density over [t0, t1].
+    fn mean_rho(&self, t0: f64, t1: f64) -> f64 {
+        let f = self.left_share(t0, t1);
+        f * self.0.left + (1.0 - f) * self.0.right
+    }
+}
+
+/// The bin masses of `kernel` on `template`'s grid, each weighted by the
+/// mean density of its t-range (`per_component`: each component's
+/// weighted masses rescaled to its weight), for the rule α_t = ∫Kρα/∫Kρ.
+fn density_weighted_masses(
+    kernel: &Gmm,
+    template: &crate::fit::gmm::KernelHistogram,
+    axis: &StepAxis,
+    per_component: bool,
+) -> crate::fit::gmm::KernelHistogram {
+    let mut out = histogram_of(kernel, template);
+    out.mass.iter_mut().for_each(|m| *m = 0.0);
+    let ns = template.s_edges.len() - 1;
+    for c in &kernel.components {
+        let one = histogram_of(
+            &Gmm {
+                components: vec![c.clone()],
+            },
+            template,
+        );
+        let weighted: Vec<f64> = one
+            .mass
+            .iter()
+            .enumerate()
+            .map(|(b, m)| {
+                let it = b / ns;
+                m * axis.mean_rho(template.t_edges[it], template.t_edges[it + 1])
+            })
+            .collect();
+        let total: f64 = weighted.iter().sum();
+        let scale = if per_component {
+            c.weight / total.max(1e-300)
+        } else {
+            1.0
+        };
+        for (o, m) in out.mass.iter_mut().zip(&weighted) {
+            *o += m * scale;
+        }
+    }
+    out
+}
+
+/// The optical warp of the unit-density kernel `opt` (queried at the
+/// optical distance τ(d)) onto `template`'s grid, exactly: along t the
+/// warp τ(t) = ∫₀ᵗρ, across it s scaled by the local ρ, so that
+/// K(t, s) = ρ(t)²·K_opt(τ(t), ρ(t)s), and a bin's mass is the mixture's
+/// mass over its image, piece by piece on either side of the step.
+fn warped_masses(
+    opt: &Gmm,
+    template: &crate::fit::gmm::KernelHistogram,
+    axis: &StepAxis,
+) -> crate::fit::gmm::KernelHistogram {
+    let mut out = histogram_of(opt, template);
+    let ns = template.s_edges.len() - 1;
+    let x = axis.0.x_step;
+    for (it, t) in template.t_edges.windows(2).enumerate() {
+        let pieces = [(t[0], t[1].min(x)), (t[0].max(x), t[1])];
+        for (is, s) in template.s_edges.windows(2).enumerate() {
+            out.mass[it * ns + is] = pieces
+                .iter()
+                .filter(|(a, b)| b > a)
+                .map(|&(a, b)| {
+                    let r = axis.rho(0.5 * (a + b));
+                    opt.mass_in_fold(axis.tau(a), axis.tau(b), r * s[0], r * s[1])
+                })
+                .sum();
+        }
+    }
+    out
+}
+
 /// Kernels across a density step (ρ = 1 | ρ = 4 across the plane halfway
-/// between x_i and x_e) measured with delta tracking, against the
-/// density-scaled homogeneous kernel K(d, α, ρ̄) for ρ̄ = 1 (plain), 4, the
-/// mean of the endpoint densities, and the kernel-weighted density
-/// ρ̄ = ∫Kρ/∫K (iterated to a fixed point) — the renderer's density scaling.
+/// between x_i and x_e) measured with delta tracking, against:
+///
+/// * the density-scaled homogeneous kernel K(d, α, ρ̄) for ρ̄ = 1 (plain),
+///   4, the mean of the endpoint densities, and the kernel-weighted density
+///   ρ̄ = ∫Kρ/∫K (iterated to a fixed point), each taken as the vertex
+///   distribution itself;
+/// * the renderer's rule: K(d, α, ρ₀) at the endpoints' mean density with
+///   the vertices weighted by the density, α_t = ∫Kρα/∫Kρ;
+/// * the optical warp ([`warped_masses`]): the unit-density kernel at the
+///   optical distance D = ∫ρ along the pair, mapped back through τ(t);
+/// * the warp as a renderer could place it: each component's centre mapped
+///   back through τ, its width σ·d/D, density-weighted within the component.
 pub fn density_step_experiment(
     file: &MetaModelFile,
     alphas: &[f64],
@@ -391,10 +512,12 @@ pub fn density_step_experiment(
     paths: u64,
     seed: u64,
 ) -> Vec<StepRow> {
+    use crate::fit::aggregation::aggregation_row_of;
     use crate::forward::kernel::{DirectedKernel, PairGrid};
     use crate::forward::medium::Medium;
     use crate::forward::walk::UniformAlbedo;
     let (left, right) = (1.0, 4.0);
+    let all = VertexClass::All;
     let mut rows = Vec::new();
     for &alpha in alphas {
         for &d in distances {
@@ -403,6 +526,7 @@ pub fn density_step_experiment(
                 left,
                 right,
             };
+            let axis = StepAxis(&step);
             let albedo = UniformAlbedo(crate::forward::rng::threshold_u32(alpha));
             let grid = PairGrid::default();
             let lambda = PairGrid::scale(d, 1.0);
@@ -421,7 +545,7 @@ pub fn density_step_experiment(
                 max_events: 1_000_000,
             };
             let cell_tally = k.run();
-            let h = cell_tally.normalized(&grid, VertexClass::All, alpha, d, lambda);
+            let h = cell_tally.normalized(&grid, all, alpha, d, lambda);
             let cell = Cell::measured(alpha, h);
             // Kernel-weighted density: mass on each side of the step.
             let weighted = |g: &Gmm| {
@@ -440,23 +564,46 @@ pub fn density_step_experiment(
                     .sum();
                 w_left * left + (1.0 - w_left) * right
             };
-            let mut rho_k = 0.5 * (left + right);
+            let rho0 = 0.5 * (left + right);
+            let mut rho_k = rho0;
             for _ in 0..20 {
-                rho_k = weighted(&file.eval(VertexClass::All, d, alpha, rho_k).gmm);
+                rho_k = weighted(&file.eval(all, d, alpha, rho_k).gmm);
             }
             let mut predictions = Vec::new();
             let mut noise = 0.0;
             for (label, rho) in [
                 ("plain (ρ̄ = 1)", left),
                 ("ρ̄ = 4", right),
-                ("endpoint mean", 0.5 * (left + right)),
+                ("endpoint mean", rho0),
                 ("kernel-weighted", rho_k),
             ] {
-                let g = file.eval(VertexClass::All, d, alpha, rho).gmm;
-                let row = aggregation_row(VertexClass::All, &cell, None, &g);
+                let g = file.eval(all, d, alpha, rho).gmm;
+                let row = aggregation_row(all, &cell, None, &g);
                 noise = row.noise;
                 predictions.push((label.to_string(), rho, row.meta));
             }
+            let at_rho0 = file.eval(all, d, alpha, rho0).gmm;
+            let renderer = density_weighted_masses(&at_rho0, &cell.hist, &axis, false);
+            let row = aggregation_row_of(all, &cell, None, &renderer);
+            predictions.push(("renderer: ρ-weighted".to_string(), rho0, row.meta));
+            let big_d = axis.tau(d);
+            let opt = file.eval(all, big_d, alpha, 1.0).gmm;
+            let row = aggregation_row_of(all, &cell, None, &warped_masses(&opt, &cell.hist, &axis));
+            predictions.push(("optical warp".to_string(), 1.0, row.meta));
+            let placed = Gmm {
+                components: opt
+                    .components
+                    .iter()
+                    .map(|c| crate::metamodel::kernel::Component {
+                        t: axis.inverse(c.t),
+                        sigma: c.sigma * d / big_d,
+                        ..c.clone()
+                    })
+                    .collect(),
+            };
+            let placed = density_weighted_masses(&placed, &cell.hist, &axis, true);
+            let row = aggregation_row_of(all, &cell, None, &placed);
+            predictions.push(("warp, placed".to_string(), 1.0, row.meta));
             rows.push(StepRow {
                 alpha,
                 d,
@@ -467,4 +614,103 @@ pub fn density_step_experiment(
         }
     }
     rows
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fit::gmm::KernelHistogram;
+
+    fn template(d: f64) -> KernelHistogram {
+        let lambda = 0.5 * d + 1.0;
+        KernelHistogram {
+            d,
+            t_edges: (0..=32)
+                .map(|i| lambda * (-4.0 + 0.25 * i as f64))
+                .collect(),
+            s_edges: (0..=16).map(|i| lambda * 0.25 * i as f64).collect(),
+            mass: vec![0.0; 32 * 16],
+            sigma: vec![0.0; 32 * 16],
+            overflow: 0.0,
+            overflow_sigma: 0.0,
+            paths: 1,
+            plane: None,
+        }
+    }
+
+    /// Without a step (equal densities on both sides) the optical warp is
+    /// the density law itself, and the density weighting changes nothing.
+    #[test]
+    fn warp_without_a_step_is_the_density_law() {
+        let (file, _) = crate::jobs::shipped::Shipped::Meta
+            .load::<MetaModelFile>(None)
+            .expect("built-in model");
+        for (alpha, d, rho) in [(0.6, 0.5, 2.5), (0.95, 2.0, 0.5), (0.3, 1.0, 4.0)] {
+            let step = DensityStep {
+                x_step: 0.5 * d,
+                left: rho,
+                right: rho,
+            };
+            let axis = StepAxis(&step);
+            let h = template(d);
+            let scaled = histogram_of(&file.eval(VertexClass::All, d, alpha, rho).gmm, &h);
+            let opt = file.eval(VertexClass::All, rho * d, alpha, 1.0).gmm;
+            let warped = warped_masses(&opt, &h, &axis);
+            let weighted = density_weighted_masses(
+                &file.eval(VertexClass::All, d, alpha, rho).gmm,
+                &h,
+                &axis,
+                false,
+            );
+            for ((a, b), c) in scaled.mass.iter().zip(&warped.mass).zip(&weighted.mass) {
+                assert!((a - b).abs() <= 1e-12 + 1e-9 * a, "warp {b} vs scaled {a}");
+                let c = c / rho;
+                assert!(
+                    (a - c).abs() <= 1e-12 + 1e-9 * a,
+                    "weighted {c} vs scaled {a}"
+                );
+            }
+            assert!(scaled.mass.iter().sum::<f64>() > 0.5);
+        }
+    }
+
+    /// Across a step the warp keeps the kernel's mass, and it moves mass
+    /// toward the thin side (where a unit of optical length is longer).
+    #[test]
+    fn warp_across_a_step_keeps_mass_and_stretches_the_thin_side() {
+        let (file, _) = crate::jobs::shipped::Shipped::Meta
+            .load::<MetaModelFile>(None)
+            .expect("built-in model");
+        let d = 1.0;
+        let step = DensityStep {
+            x_step: 0.5,
+            left: 1.0,
+            right: 4.0,
+        };
+        let axis = StepAxis(&step);
+        assert_eq!(axis.tau(d), 2.5);
+        assert!((axis.inverse(axis.tau(0.8)) - 0.8).abs() < 1e-12);
+        let mut h = template(d);
+        h.t_edges = (0..=400).map(|i| -20.0 + 0.1 * i as f64).collect();
+        h.s_edges = (0..=200).map(|i| 0.1 * i as f64).collect();
+        h.mass = vec![0.0; 400 * 200];
+        let opt = file.eval(VertexClass::All, axis.tau(d), 0.8, 1.0).gmm;
+        let w = warped_masses(&opt, &h, &axis);
+        let total: f64 = w.mass.iter().sum();
+        assert!((total - opt.total_weight()).abs() < 1e-6, "{total}");
+        let left: f64 = (0..400)
+            .filter(|&i| h.t_edges[i + 1] <= 0.5)
+            .map(|i| w.mass[i * 200..(i + 1) * 200].iter().sum::<f64>())
+            .sum();
+        // Optical mass left of τ = 0.5 (the step's image) in the unit kernel.
+        let expect: f64 = opt
+            .components
+            .iter()
+            .map(|c| {
+                c.weight
+                    * crate::metamodel::kernel::gauss_interval(f64::NEG_INFINITY, 0.5, c.t, c.sigma)
+            })
+            .sum();
+        assert!((left - expect).abs() < 1e-6, "{left} vs {expect}");
+    }
 }
