@@ -19,7 +19,7 @@ use svkernel::metamodel::meta::MetaModelFile;
 use svkernel::pair::VertexClass;
 use svkernel::provenance::Provenance;
 use svkernel::render::estimator::{Sampling, Sequence};
-use svkernel::render::svbssrdf::{AlbedoSpace, SPACE_BLUR};
+use svkernel::render::svbssrdf::{AlbedoSpace, DensityLaw, SPACE_BLUR};
 
 #[derive(Parser)]
 #[command(
@@ -538,6 +538,12 @@ struct RenderArgs {
     /// albedo variation for --albedo-space.
     #[arg(long, default_value_t = SPACE_BLUR)]
     space_blur: f64,
+    /// Kernel-method variant: the density that scales the profile where the
+    /// density varies (endpoints: the geometric mean of the profiles at the
+    /// entry's and the exit's density; kernel: the mean density under the
+    /// kernel).
+    #[arg(long, value_enum, default_value_t = DensityLaw::Endpoints)]
+    density_law: DensityLaw,
     /// Paths of the reference (default: the scene's `reference_paths`; 1e7 notation).
     #[arg(long, value_parser = parse_count)]
     paths: Option<u64>,
@@ -1350,15 +1356,24 @@ fn fit(f: Fit) -> Result<()> {
             let (f, _): (MetaModelFile, _) = Shipped::Meta.load(model.as_deref())?;
             let start = std::time::Instant::now();
             let rows = density_step_experiment(&f, &albedos, &distances, paths, seed);
-            println!(
-                "| α | d | paths | plain ρ̄=1 | ρ̄=4 | endpoint mean ρ̄=2.5 | kernel-weighted ρ̄ | noise |"
-            );
-            println!("|---|---|---|---|---|---|---|---|");
+            if let Some(first) = rows.first() {
+                let labels: Vec<&str> = first.predictions.iter().map(|p| p.0.as_str()).collect();
+                println!("| α | d | paths | {} | noise |", labels.join(" | "));
+                println!("|---|---|---|{}---|", "---|".repeat(labels.len()));
+            }
             for r in &rows {
-                let p = &r.predictions;
+                let cells: Vec<String> = r
+                    .predictions
+                    .iter()
+                    .map(|p| format!("{:.4}", p.2))
+                    .collect();
                 println!(
-                    "| {} | {} | {} | {:.4} | {:.4} | {:.4} | {:.4} (ρ̄={:.2}) | {:.4} |",
-                    r.alpha, r.d, r.paths, p[0].2, p[1].2, p[2].2, p[3].2, p[3].1, r.noise
+                    "| {} | {} | {} | {} | {:.4} |",
+                    r.alpha,
+                    r.d,
+                    r.paths,
+                    cells.join(" | "),
+                    r.noise
                 );
             }
             println!("{:.1} s", start.elapsed().as_secs_f64());
@@ -1573,6 +1588,7 @@ fn render(a: RenderArgs) -> Result<()> {
             two_pass: a.two_pass,
             space: a.albedo_space,
             space_blur: a.space_blur,
+            density_law: a.density_law,
         },
         seed: a.seed,
         reference_paths: a.paths,

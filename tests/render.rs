@@ -9,7 +9,7 @@ use svkernel::render::analysis::analyse;
 use svkernel::render::estimator::{Image, Sampling};
 use svkernel::render::reference::Reference;
 use svkernel::render::scene::Scene;
-use svkernel::render::svbssrdf::{AlbedoSpace, Method, Variant};
+use svkernel::render::svbssrdf::{AlbedoSpace, DensityLaw, Method, Variant};
 
 fn scene_file(name: &str, toml: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("svk-render-{}", std::process::id()));
@@ -443,6 +443,11 @@ fn hard_cases_give_finite_images() {
                     AlbedoSpace::Log
                 },
                 space_blur: if on { 0.0 } else { 0.5 },
+                density_law: if on {
+                    DensityLaw::Kernel
+                } else {
+                    DensityLaw::Endpoints
+                },
             };
             let passes = render_scene(&scene, &o).unwrap_or_else(|e| panic!("{name}: {e}"));
             assert_finite(&passes, name);

@@ -20,8 +20,11 @@
 //! | `factorized` | √(R(r; α_i, ρ_i)·R(r; α_e, ρ_e)) |
 //! | `line` | R(r; ᾱ, ρ̄) over the segment x_i → x_e |
 //! | `ellipse` | R(r; ᾱ, ρ̄) over the ellipse with foci x_i, x_e |
-//! | `manual`, `learned` | ρ̄²·[α₁·R₁(ρ̄r; 1) + α_i·α_e·Rₘ(ρ̄r; α_t)/α_t²] |
+//! | `manual`, `learned` | √(P(ρ_i)·P(ρ_e)), P(ρ) = ρ²·[α₁·R₁(ρr; 1) + α_i·α_e·Rₘ(ρr; α_t)/α_t²] |
 //!
+//! The kernel methods' profile P is scaled by the densities at both ends
+//! ([`DensityLaw::Endpoints`]; P(ρ̄) with the kernel's mean density ρ̄ under
+//! [`DensityLaw::Kernel`]); in a homogeneous medium both are P(ρ).
 //! Every average over a support (segment, ellipse, kernel) is density-scaled
 //! the same way: ᾱ = ∫ρα/∫ρ, ρ̄ = ∫ρ (normalised weights), the design's
 //! aggregation with r_eff = r·ρ̄. `line` samples the segment at spacing
@@ -154,6 +157,37 @@ pub struct Variant {
     /// The scale b (MFP at the local density) that separates fine from
     /// coarse albedo variation in a two-scale [`AlbedoSpace`].
     pub space_blur: f64,
+    /// The density that scales the profile where the density varies.
+    pub density_law: DensityLaw,
+}
+
+/// Which density scales the kernel methods' profile, R(r; α_t, ρ) =
+/// ρ²·R(ρr; α_t, 1), where the density varies (module docs). In a
+/// homogeneous medium both laws are that density law itself.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, clap::ValueEnum)]
+pub enum DensityLaw {
+    /// S = √(R(r; α_t, ρ_i)·R(r; α_t, ρ_e)): the geometric mean of the
+    /// profiles at the entry's and the exit's density, reciprocal in x_i and
+    /// x_e. Where light enters sets how far it spreads before it turns, and
+    /// where it leaves sets how it spreads on the way out; the albedo stays
+    /// averaged under the kernel. The default: measured best across density
+    /// steps, and equal to `kernel` on the density ramp
+    /// (docs/measurements.md).
+    #[default]
+    Endpoints,
+    /// S = R(r; α_t, ρ̄) with ρ̄ = ∫Kρ/∫K, the mean density under the
+    /// all-vertex kernel.
+    Kernel,
+}
+
+impl DensityLaw {
+    /// The name on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            DensityLaw::Endpoints => "endpoints",
+            DensityLaw::Kernel => "kernel",
+        }
+    }
 }
 
 /// The default [`Variant::space_blur`], in MFP: the value a sweep over
@@ -254,6 +288,7 @@ impl Default for Variant {
             two_pass: false,
             space: AlbedoSpace::Transport,
             space_blur: SPACE_BLUR,
+            density_law: DensityLaw::Endpoints,
         }
     }
 }
@@ -279,6 +314,11 @@ impl Variant {
         }
         if self.space_blur != d.space_blur && self.space != AlbedoSpace::Linear {
             s += &format!("+blur{}", self.space_blur);
+        }
+        if self.density_law != d.density_law {
+            s += "+";
+            s += self.density_law.name();
+            s += "-density";
         }
         s
     }
@@ -900,7 +940,7 @@ impl SvBssrdf {
                 b.exitance(d, a, r)
             }
             Method::Manual | Method::Learned => {
-                self.eval_split(c, xi, [dx, dy], d, [ai, ae], 0.5 * (ri + re), scratch)
+                self.eval_split(c, xi, [dx, dy], d, [ai, ae], [ri, re], scratch)
             }
         }
     }
@@ -915,9 +955,10 @@ impl SvBssrdf {
         delta: [f64; 2],
         d: f64,
         [ai, ae]: [f64; 2],
-        rho0: f64,
+        [ri, re]: [f64; 2],
         scratch: &mut Scratch,
     ) -> f64 {
+        let rho0 = 0.5 * (ri + re);
         let axis = if d > 0.0 {
             [delta[0] / d, delta[1] / d]
         } else {
@@ -960,14 +1001,21 @@ impl SvBssrdf {
             self.all_kernel(d, alpha_t, rho_bar, &mut scratch.kernel);
             (alpha_t, rho_bar) = self.aggregate(c, &frame, &scratch.kernel, true);
         }
-        let (single, multi) = b.parts(d.max(R_MIN) * rho_bar, alpha_t);
         // The single-scattering vertex: below x_i under normal incidence;
         // for the radiance along the normal below x_e under any light.
         let a1 = match b.observable {
             Observable::Exitance => ai,
             Observable::Radiance => ae,
         };
-        rho_bar * rho_bar * (a1 * single + li * le * multi)
+        let profile = |rho: f64| {
+            let (single, multi) = b.parts(d.max(R_MIN) * rho, alpha_t);
+            rho * rho * (a1 * single + li * le * multi)
+        };
+        match self.variant.density_law {
+            DensityLaw::Endpoints if ri == re => profile(ri),
+            DensityLaw::Endpoints => (profile(ri) * profile(re)).sqrt(),
+            DensityLaw::Kernel => profile(rho_bar),
+        }
     }
 
     /// The all-vertex kernel at (d, α₀, ρ₀) in physical MFP, into `out`:
@@ -1475,6 +1523,7 @@ mod tests {
                             two_pass: true,
                             space: AlbedoSpace::Log,
                             space_blur: 0.5,
+                            density_law: DensityLaw::Kernel,
                         },
                     ] {
                         // A 1 × 1 density map under a 16 × 16 albedo: resampled.
@@ -1659,9 +1708,14 @@ mod tests {
         let meta = Arc::new(file);
         let albedo = noise_map(24, 0.25, 0.2, 0.95, 7);
         let density = noise_map(24, 0.25, 0.5, 3.0, 8);
-        for two_pass in [false, true] {
+        for (two_pass, density_law) in [
+            (false, DensityLaw::Endpoints),
+            (true, DensityLaw::Endpoints),
+            (false, DensityLaw::Kernel),
+        ] {
             let variant = Variant {
                 two_pass,
+                density_law,
                 ..Variant::default()
             };
             let sv = SvBssrdf::new(
@@ -1697,9 +1751,20 @@ mod tests {
                     (li - le).abs() > 1e-3,
                     "the two vertex kernels must differ here"
                 );
-                let (single, multi) = t.parts(d * rho_bar, alpha_t);
-                let want = rho_bar * rho_bar * (ai * single + li * le * multi);
-                assert_eq!(got, want, "two_pass {two_pass}, {xi:?} → {xe:?}");
+                let profile = |rho: f64| {
+                    let (single, multi) = t.parts(d * rho, alpha_t);
+                    rho * rho * (ai * single + li * le * multi)
+                };
+                let (ri, re) = (density.at(xi[0], xi[1]), density.at(xe[0], xe[1]));
+                assert_ne!(ri, re, "the endpoints' densities must differ here");
+                let want = match density_law {
+                    DensityLaw::Endpoints => (profile(ri) * profile(re)).sqrt(),
+                    DensityLaw::Kernel => profile(rho_bar),
+                };
+                assert_eq!(
+                    got, want,
+                    "{density_law:?}, two_pass {two_pass}, {xi:?} → {xe:?}"
+                );
             }
         }
     }
