@@ -65,24 +65,16 @@ for c in linear:0 transport:0.25; do
 done
 
 python3 - "$out" $configs <<'PY'
-import ast, json, pathlib, struct, sys
+import ast, pathlib, struct, sys
+sys.path.insert(0, "tools")
+from render_metrics import cell, metrics
 out, configs = pathlib.Path(sys.argv[1]), sys.argv[2:]
-
-def cell(m):
-    e = m["metrics"]
-    v = e["rel_rmse"]
-    rmse = "< noise" if not v else f"{100 * v:.1f} %"
-    return f"{rmse} ({100 * e['rel_bias']:+.1f} %)"
 
 rows = {}
 for c in configs:
-    for d in sorted(p for p in (out / c).iterdir() if (p / "render.json").exists()):
-        doc = json.loads((d / "render.json").read_text())
-        for p in doc["passes"]:
-            key = d.name + ("" if p["tag"] in ("", "main") else f" {p['tag']}")
-            for m in p["methods"]:
-                if m.get("metrics"):
-                    rows.setdefault(m["method"], {}).setdefault(key, {})[c] = cell(m)
+    for scene, tag, method, e in metrics(out / c):
+        key = scene + ("" if tag in ("", "main") else f" {tag}")
+        rows.setdefault(method, {}).setdefault(key, {})[c] = cell(e)
 text = ""
 for method, table in rows.items():
     text += f"\n`{method}`, relative RMSE (mean relative bias):\n\n"

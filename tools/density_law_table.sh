@@ -60,23 +60,15 @@ for law in $laws; do
 done
 
 python3 - "$out" $laws <<'PY'
-import json, pathlib, sys
+import pathlib, sys
+sys.path.insert(0, "tools")
+from render_metrics import cell, metrics
 out, laws = pathlib.Path(sys.argv[1]), sys.argv[2:]
-
-def cell(m):
-    e = m["metrics"]
-    v = e["rel_rmse"]
-    rmse = "< noise" if not v else f"{100 * v:.1f} %"
-    return f"{rmse} ({100 * e['rel_bias']:+.1f} %)"
 
 rows = {}
 for law in laws:
-    for d in sorted(p for p in (out / law).iterdir() if (p / "render.json").exists()):
-        doc = json.loads((d / "render.json").read_text())
-        for p in doc["passes"]:
-            for m in p["methods"]:
-                if m.get("metrics"):
-                    rows.setdefault(d.name, {})[(m["method"], law)] = cell(m)
+    for scene, _, method, e in metrics(out / law):
+        rows.setdefault(scene, {})[(method, law)] = cell(e)
 cols = [(m, law) for m in ("learned", "manual") for law in laws]
 text = "| scene | " + " | ".join(f"{m}, {law}" for m, law in cols) + " |\n"
 text += "|---" * (len(cols) + 1) + "|\n"
