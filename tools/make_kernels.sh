@@ -2,8 +2,10 @@
 # Regenerates data/kernels/eta1.5_g0.3_pencil.json: path densities (first,
 # last and all scattering vertices, multiple scattering) of the default
 # medium (η = 1.5, g = 0.3, ρ = 1) under a pencil beam, at 8 albedos and 10
-# pair distances (bins d·(1 ± 0.1)), 2e7 paths walked once per albedo
-# (common random numbers across albedos). About 40–80 s on 2 cores.
+# pair distances (bins d·(1 ± 0.1)). The simulation is planned per cell
+# (docs/method.md §3): each cell gets the flight sampling its pilot found
+# best and paths for 20000 effective contributing paths, one round
+# (7.4e8 paths). About 3–4 minutes on 2 cores.
 #
 #   bash tools/make_kernels.sh                 # the shipped training set
 #   SHARD=k/N bash tools/make_kernels.sh       # one slice (merge with `svkernel merge`)
@@ -18,4 +20,5 @@ if [ -n "${SHARD:-}" ]; then shard_args=(--shard "$SHARD"); out="${out%.json}.sh
   --albedos 0.2,0.4,0.6,0.75,0.85,0.92,0.96,0.99 \
   --distances 0.1,0.2,0.35,0.6,1,1.6,2.5,4,6.5,10 \
   --rel-width 0.1 --min-order 2 --eta 1.5 --g 0.3 --density 1 \
-  --paths 2e7 --seed 3000 "${shard_args[@]}" --resume --out "$out" | sed -n 1p
+  --min-paths 20000 --top-ups 0 --paths 4e9 --seed 3000 "${shard_args[@]}" --resume \
+  --out "$out" | sed -n 1p
