@@ -501,7 +501,7 @@ fn warped_masses(
 ///   distribution itself;
 /// * the renderer's rule: K(d, α, ρ₀) at the endpoints' mean density with
 ///   the vertices weighted by the density, α_t = ∫Kρα/∫Kρ;
-/// * the optical warp ([`warped_masses`]): the unit-density kernel at the
+/// * the optical warp: the unit-density kernel at the
 ///   optical distance D = ∫ρ along the pair, mapped back through τ(t);
 /// * the warp as a renderer could place it: each component's centre mapped
 ///   back through τ, its width σ·d/D, density-weighted within the component.
