@@ -431,8 +431,8 @@ fn density_weighted_masses(
     axis: &StepAxis,
     per_component: bool,
 ) -> crate::fit::gmm::KernelHistogram {
-    let mut out = histogram_of(kernel, template);
-    out.mass.iter_mut().for_each(|m| *m = 0.0);
+    // Zero masses on the template's grid, to be summed into.
+    let mut out = histogram_of(&Gmm::default(), template);
     let ns = template.s_edges.len() - 1;
     for c in &kernel.components {
         let one = histogram_of(
@@ -489,6 +489,8 @@ fn warped_masses(
                 .sum();
         }
     }
+    // What the warped grid leaves out (not the unwarped grid's).
+    out.overflow = (opt.total_weight() - out.mass.iter().sum::<f64>()).max(0.0);
     out
 }
 
