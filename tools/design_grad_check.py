@@ -30,7 +30,12 @@ anchor selects per (texel, offset). This script re-implements, in float64:
 * M_e = sum_k W_k S_k over lit x_i = x_e + delta_k with
   point S = R(d; alpha_e), factorized S = sqrt(R(d; alpha_i) R(d; alpha_e)),
   learned S = alpha_i R_1 + l_i l_e R_m(d; alpha_t)/alpha_t^2 with alpha_t
-  clamped to [0, 1] and l_i = alpha_i without a first-vertex model.
+  clamped to [0, 1] and l_i = alpha_i without a first-vertex model;
+* alpha_t in the exported space: linear, the mean of alpha under the
+  all-vertex reads; otherwise two-scale, phi^-1(mean of phi(abar)) + mean
+  of (alpha - abar), with abar the map (edge texels extended) convolved
+  with a Gaussian of width b at each texel centre, integrated over each
+  texel exactly (no window).
 
 It checks M against the export (1e-8 relative to max |M|) and the
 gradient of F = sum_e g_e M_e from jax.grad against the exported adjoint
@@ -160,6 +165,14 @@ def read(levels, vals, x, y, sigma):
     return out
 
 
+SPACES = {
+    "linear": (lambda a: a, lambda y: y),
+    "transport": (lambda a: jnp.sqrt(jnp.maximum(1 - a, 0.0)), lambda y: 1 - y * y),
+    "log": (lambda a: jnp.log(jnp.maximum(a, 1e-6)), jnp.exp),
+    "absorption": (lambda a: jnp.log(jnp.maximum(1 - a, 1e-6)), lambda y: 1 - jnp.exp(y)),
+}
+
+
 def check(p):
     nx, ny, tau = p["nx"], p["ny"], p["texel"]
     n = nx * ny
@@ -184,6 +197,20 @@ def check(p):
     w = offs[:, 2]
     method = p["method"]
     levels = stack_levels(p) if method == "learned" else None
+    space = p.get("space", {"kind": "linear", "blur": 0.0})
+    phi, phi_inv = SPACES[space["kind"]]
+    if space["kind"] != "linear" and space["blur"] > 0:
+        cx = -0.5 * nx * tau + tau * (np.arange(nx) + 0.5)
+        cu = -0.5 * ny * tau + tau * (np.arange(ny) + 0.5)
+        bx = gaussian_weights(nx, tau, space["blur"], jnp.asarray(cx))
+        bu = gaussian_weights(ny, tau, space["blur"], jnp.asarray(cu))
+
+        def local_mean(a):
+            return bu @ a @ bx.T
+    else:
+
+        def local_mean(a):
+            return a
 
     def means(vals, rows):
         """Per (texel, offset) sum of share * read over the exported reads."""
@@ -204,8 +231,14 @@ def check(p):
         elif method == "factorized":
             s = jnp.sqrt(jnp.maximum(profile(ai) * profile(ae), 0.0))
         else:
-            vals = level_values(levels, alpha.reshape(ny, nx))
-            at = means(vals, p["reads_all"])
+            amap = alpha.reshape(ny, nx)
+            vals = level_values(levels, amap)
+            if space["kind"] == "linear":
+                at = means(vals, p["reads_all"])
+            else:
+                abar = local_mean(amap)
+                y = means(level_values(levels, phi(abar)), p["reads_all"])
+                at = phi_inv(y) + means(level_values(levels, amap - abar), p["reads_all"])
             le = means(vals, p["reads_last"])
             li = means(vals, p["reads_first"]) if p["has_first"] else ai
             t = jnp.clip(at, 0.0, 1.0)
@@ -222,7 +255,7 @@ def check(p):
     g_err = float(np.max(np.abs(np.asarray(grad) - grad_rust)) / scale)
     ok = m_err <= M_TOL and g_err <= GRAD_TOL and scale > 0
     print(
-        f"{'PASS' if ok else 'FAIL'} {method:10s} {light['kind']:7s} {nx}x{ny}, "
+        f"{'PASS' if ok else 'FAIL'} {method:10s} {light['kind']:7s} {space['kind']:9s} {nx}x{ny}, "
         f"{len(offs)} offsets: M rel. diff {m_err:.1e} (tol {M_TOL:g}), "
         f"gradient rel. diff {g_err:.1e} (tol {GRAD_TOL:g}, max |grad| {scale:.3e})"
     )
@@ -239,12 +272,19 @@ def exported_problems(folder):
     z = (z - z.min()) / (z.max() - z.min())
     target = os.path.join(folder, "target.npy")
     np.save(target, 0.05 + 0.55 * z)
-    cases = [("point", "uniform"), ("factorized", "uniform"), ("learned", "uniform"), ("learned", "disk:0.4")]
-    for method, light in cases:
-        out = os.path.join(folder, f"{method}-{light.replace(':', '')}.json")
+    cases = [
+        ("point", "uniform", "transport"),
+        ("factorized", "uniform", "transport"),
+        ("learned", "uniform", "transport"),
+        ("learned", "disk:0.4", "transport"),
+        ("learned", "uniform", "linear"),
+    ]
+    for method, light, space in cases:
+        out = os.path.join(folder, f"{method}-{light.replace(':', '')}-{space}.json")
         subprocess.run(
             [svkernel, "design", target, "--export-check", out, "--texel", "0.05",
-             "--method", method, "--illumination", light, "--quadrature", "6,3"],
+             "--method", method, "--illumination", light, "--quadrature", "6,3",
+             "--albedo-space", space],
             check=True, stdout=subprocess.DEVNULL,
         )
         yield out

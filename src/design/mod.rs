@@ -37,7 +37,7 @@ pub mod stack;
 use crate::error::{Error, Result};
 use crate::metamodel::basis::BasisModel;
 use crate::metamodel::meta::MetaModelFile;
-use crate::render::svbssrdf::Method;
+use crate::render::svbssrdf::{AlbedoSpace, Method, SPACE_BLUR};
 use appearance::{Appearance, Illumination, Quadrature};
 use rcompat_lbfgsb::{ArithmeticProfile, Bounds, OptimControl, OptimEvent};
 use serde::{Deserialize, Serialize};
@@ -64,6 +64,10 @@ pub struct Settings {
     /// Smoothness weight W.
     pub smoothness: f64,
     pub quadrature: Quadrature,
+    /// The space of α_t's coarse part (learned; the renderer's default).
+    pub albedo_space: AlbedoSpace,
+    /// The scale b (MFP) that splits α_t's fine from its coarse part.
+    pub space_blur: f64,
 }
 
 impl Default for Settings {
@@ -78,6 +82,8 @@ impl Default for Settings {
             rounds: 2,
             smoothness: 0.0,
             quadrature: Quadrature::default(),
+            albedo_space: AlbedoSpace::default(),
+            space_blur: SPACE_BLUR,
         }
     }
 }
@@ -490,7 +496,8 @@ impl<'a> Designer<'a> {
             settings.illumination,
             span,
             &settings.quadrature,
-        )?;
+        )?
+        .with_albedo_space(settings.albedo_space, settings.space_blur)?;
         Ok(Designer {
             app,
             coord: Reflectance::new(basis, range),

@@ -261,14 +261,19 @@ impl BlurStack {
         let (head, rest) = self.nodes.split_at_mut(self.nx * self.ny);
         head.copy_from_slice(map);
         let mut rest = rest;
+        let mut outs = Vec::with_capacity(self.levels.len() - 1);
         for lv in &self.levels[1..] {
             let (out, tail) = rest.split_at_mut(lv.nx * lv.ny);
-            // Along x within each texel row, then along u across rows.
-            let mut tmp = vec![0.0; self.ny * lv.nx];
-            lv.sx.apply_within(map, &mut tmp);
-            lv.su.apply_rows(&tmp, out, lv.nx);
+            outs.push((lv, out));
             rest = tail;
         }
+        let ny = self.ny;
+        outs.into_par_iter().for_each(|(lv, out)| {
+            // Along x within each texel row, then along u across rows.
+            let mut tmp = vec![0.0; ny * lv.nx];
+            lv.sx.apply_within(map, &mut tmp);
+            lv.su.apply_rows(&tmp, out, lv.nx);
+        });
     }
 
     /// The eight taps of the read at centre `mu` (MFP) and width `sigma`
@@ -374,14 +379,20 @@ impl BlurStack {
         for (o, v) in out.iter_mut().zip(&g[..self.nx * self.ny]) {
             *o += v;
         }
-        let mut tmp = vec![0.0; self.ny * self.levels.iter().map(|l| l.nx).max().unwrap_or(0)];
-        let mut back = vec![0.0; self.nx * self.ny];
-        for lv in &self.levels[1..] {
-            let gl = &g[lv.offset..lv.offset + lv.nx * lv.ny];
-            let tmp = &mut tmp[..self.ny * lv.nx];
-            lv.su_t.apply_rows(gl, tmp, lv.nx);
-            lv.sx_t.apply_within(tmp, &mut back);
-            for (o, v) in out.iter_mut().zip(&back) {
+        // Each level's share in parallel, added in level order.
+        let backs: Vec<Vec<f64>> = self.levels[1..]
+            .par_iter()
+            .map(|lv| {
+                let gl = &g[lv.offset..lv.offset + lv.nx * lv.ny];
+                let mut tmp = vec![0.0; self.ny * lv.nx];
+                let mut back = vec![0.0; self.nx * self.ny];
+                lv.su_t.apply_rows(gl, &mut tmp, lv.nx);
+                lv.sx_t.apply_within(&tmp, &mut back);
+                back
+            })
+            .collect();
+        for back in &backs {
+            for (o, v) in out.iter_mut().zip(back) {
                 *o += v;
             }
         }

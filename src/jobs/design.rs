@@ -93,8 +93,10 @@ pub struct Validation {
     pub reference_noise: f64,
     pub naive: Errors,
     pub rows: Vec<ValidationRow>,
-    /// Designed error ÷ naive error for `learned` (relative RMSE).
-    pub improvement: f64,
+    /// Naive error ÷ designed error for the designing model (relative
+    /// RMSE); `None` when the designed map's error is below the
+    /// reference's noise (a ratio the reference cannot resolve).
+    pub improvement: Option<f64>,
     pub seconds: f64,
     /// The validation images (not in `design.json`; written as `.npy`).
     #[serde(skip)]
@@ -127,6 +129,9 @@ pub struct DesignDoc {
     pub rounds: usize,
     pub smoothness: f64,
     pub quadrature: [usize; 2],
+    /// α_t's space and scale b (MFP) in `learned`.
+    pub albedo_space: String,
+    pub space_blur: f64,
     pub history: Vec<Step>,
     pub evaluations: usize,
     pub setup_s: f64,
@@ -167,6 +172,8 @@ pub fn run(opts: &DesignOptions) -> Result<DesignDoc> {
         rounds: s.rounds,
         smoothness: s.smoothness,
         quadrature: [s.quadrature.rings, s.quadrature.angles],
+        albedo_space: s.albedo_space.name().into(),
+        space_blur: s.space_blur,
         history: designed.history.clone(),
         evaluations: designed.evaluations,
         setup_s: designed.setup_seconds,
@@ -507,7 +514,8 @@ fn validate(
             design_s,
         });
     }
-    let improvement = naive.rel_rmse / rows[0].designed.rel_rmse.max(1e-12);
+    let designed_error = rows[0].designed.rel_rmse;
+    let improvement = (designed_error > 0.0).then(|| naive.rel_rmse / designed_error);
     Ok(Validation {
         paths,
         resolution: res,

@@ -496,23 +496,60 @@ pub fn exact(map: &TexelMap, mu: [f64; 2], sigma: f64) -> f64 {
 /// Separable, so O(nx·ny·σ/τ); equal to [`exact`] at each centre but for the
 /// mass beyond 6σ, which goes to the window's outer texels (≤ 2e-9 of it).
 pub fn blur(map: &TexelMap, sigma: f64) -> TexelMap {
+    let values = blur_pass(
+        map,
+        sigma,
+        &blur_pass(map, sigma, &map.values, false, false),
+        true,
+        false,
+    );
+    TexelMap {
+        nx: map.nx,
+        ny: map.ny,
+        texel: map.texel,
+        values,
+    }
+}
+
+/// The transpose of [`blur`] as a linear map of the texel values: for
+/// texel weights g (row-major, the grid of `map`, whose values are not
+/// read), the gradient Σ_k g_k·∂(blur(α))_k/∂α. With edge clamp the blur is
+/// not symmetric near the edges, so this is not [`blur`] itself.
+pub fn blur_transpose(map: &TexelMap, sigma: f64, g: &[f64]) -> Vec<f64> {
+    assert_eq!(g.len(), map.nx * map.ny, "texel buffer length");
+    blur_pass(
+        map,
+        sigma,
+        &blur_pass(map, sigma, g, true, true),
+        false,
+        true,
+    )
+}
+
+/// One separable pass of [`blur`] along x (`y_axis` false) or y, or its
+/// transpose: output k along the axis from the window of texels around
+/// its centre, for every line l across it.
+fn blur_pass(map: &TexelMap, sigma: f64, src: &[f64], y_axis: bool, transpose: bool) -> Vec<f64> {
     let tau = map.texel;
     let (nx, ny) = (map.nx, map.ny);
-    // One pass along x (`y_axis` false) or y: output k along the axis from
-    // the window of texels around its centre, for every line l across it.
-    let pass = |src: &[f64], y_axis: bool| -> Vec<f64> {
-        let (n, lines) = if y_axis { (ny, nx) } else { (nx, ny) };
-        let at = |k: usize, l: usize| if y_axis { k * nx + l } else { l * nx + k };
-        let mut out = vec![0.0; src.len()];
-        for k in 0..n {
-            let c = if y_axis {
-                0.5 * ny as f64 * tau - (k as f64 + 0.5) * tau
+    let (n, lines) = if y_axis { (ny, nx) } else { (nx, ny) };
+    let at = |k: usize, l: usize| if y_axis { k * nx + l } else { l * nx + k };
+    let mut out = vec![0.0; src.len()];
+    for k in 0..n {
+        let c = if y_axis {
+            0.5 * ny as f64 * tau - (k as f64 + 0.5) * tau
+        } else {
+            (k as f64 + 0.5) * tau - 0.5 * nx as f64 * tau
+        };
+        let (lo, hi) = window(map, y_axis, c, 6.0 * sigma);
+        let w = axis_masses(map, y_axis, c, sigma, lo, hi);
+        for l in 0..lines {
+            if transpose {
+                let v = src[at(k, l)];
+                for (q, wq) in w.iter().enumerate() {
+                    out[at(lo + q, l)] += wq * v;
+                }
             } else {
-                (k as f64 + 0.5) * tau - 0.5 * nx as f64 * tau
-            };
-            let (lo, hi) = window(map, y_axis, c, 6.0 * sigma);
-            let w = axis_masses(map, y_axis, c, sigma, lo, hi);
-            for l in 0..lines {
                 out[at(k, l)] = w
                     .iter()
                     .enumerate()
@@ -520,15 +557,8 @@ pub fn blur(map: &TexelMap, sigma: f64) -> TexelMap {
                     .sum();
             }
         }
-        out
-    };
-    let values = pass(&pass(&map.values, false), true);
-    TexelMap {
-        nx,
-        ny,
-        texel: tau,
-        values,
     }
+    out
 }
 
 /// Mass of N(μ_x, σ²) on columns `lo..=hi` (x axis) or rows (y axis, with
@@ -893,6 +923,32 @@ mod tests {
             .map(|k| PathRng::new(seed, k as u64).uniform())
             .collect();
         TexelMap::new(nx, ny, tau, values).unwrap()
+    }
+
+    /// `blur_transpose` is the transpose of `blur`: ⟨B x, g⟩ = ⟨x, Bᵀ g⟩ on
+    /// a non-square map, with the window reaching past the edges.
+    #[test]
+    fn blur_transpose_is_the_adjoint() {
+        let x = noise_map(23, 17, 0.1, 3);
+        let g = noise_map(23, 17, 0.1, 4);
+        for sigma in [0.05, 0.25, 0.9] {
+            let bx = blur(&x, sigma);
+            let btg = blur_transpose(&x, sigma, &g.values);
+            let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(a, b)| a * b).sum::<f64>();
+            let (lhs, rhs) = (dot(&bx.values, &g.values), dot(&x.values, &btg));
+            assert!(
+                (lhs - rhs).abs() < 1e-12 * lhs.abs(),
+                "σ {sigma}: {lhs} vs {rhs}"
+            );
+            // Near an edge the blur is not symmetric: the transpose differs.
+            let bg = blur(&g, sigma);
+            assert!(
+                bg.values
+                    .iter()
+                    .zip(&btg)
+                    .any(|(a, b)| (a - b).abs() > 1e-6)
+            );
+        }
     }
 
     /// `blur` is [`exact`] at every texel centre, edges and corners

@@ -269,6 +269,28 @@ impl AlbedoSpace {
         }
     }
 
+    /// dφ/dα at α (0 where the floor of a logarithm, or 1 − α ≤ 0 in
+    /// `transport`, holds φ constant).
+    pub fn forward_derivative(self, alpha: f64) -> f64 {
+        match self {
+            AlbedoSpace::Linear => 1.0,
+            AlbedoSpace::Log if alpha > SPACE_FLOOR => 1.0 / alpha,
+            AlbedoSpace::Absorption if 1.0 - alpha > SPACE_FLOOR => -1.0 / (1.0 - alpha),
+            AlbedoSpace::Transport if alpha < 1.0 => -0.5 / (1.0 - alpha).sqrt(),
+            _ => 0.0,
+        }
+    }
+
+    /// dφ⁻¹/dy at y.
+    pub fn inverse_derivative(self, y: f64) -> f64 {
+        match self {
+            AlbedoSpace::Linear => 1.0,
+            AlbedoSpace::Log => y.exp(),
+            AlbedoSpace::Absorption => -y.exp(),
+            AlbedoSpace::Transport => -2.0 * y,
+        }
+    }
+
     /// The name on the command line.
     pub fn name(self) -> &'static str {
         match self {
