@@ -303,7 +303,8 @@ struct DesignArgs {
     /// uniform, or disk:R (a disk of radius R MFP at the texture's centre).
     #[arg(long, default_value = "uniform")]
     illumination: String,
-    /// Projected fixed-point steps u ← clip(u + target − M(u)) before L-BFGS-B.
+    /// Projected fixed-point steps u ← clip(u + target − M(u)) before
+    /// L-BFGS-B, at most (they stop at the first that raises the objective).
     #[arg(long, default_value_t = 30)]
     warm_start: usize,
     /// L-BFGS-B iterations per channel.

@@ -639,8 +639,9 @@ fn write_outputs(
     let mut blocks = vec![
         Block::Para(format!(
             "Target `{}` ({ny} × {nx}, {} channel(s)), texel {} MFP, albedo range [{}, {}], \
-             {} illumination, forward model `{}`. {} fixed-point steps and {} L-BFGS-B \
-             iterations per channel in {:.1} s ({} model evaluations), set-up {:.1} s.",
+             {} illumination, forward model `{}`. {} of at most {} fixed-point steps over all \
+             channels (each channel's stop at the first that raises F), then {} L-BFGS-B \
+             iterations per channel, in {:.1} s ({} model evaluations), set-up {:.1} s.",
             opts.target.display(),
             target.len(),
             doc.texel,
@@ -648,7 +649,11 @@ fn write_outputs(
             doc.albedo_range[1],
             doc.illumination,
             doc.method,
-            doc.warm_start,
+            doc.history
+                .iter()
+                .filter(|h| h.stage == crate::design::Stage::FixedPoint)
+                .count(),
+            doc.warm_start * target.len(),
             doc.iterations,
             doc.solve_s,
             doc.evaluations,
