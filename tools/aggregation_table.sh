@@ -67,7 +67,7 @@ done
 python3 - "$out" $configs <<'PY'
 import ast, pathlib, struct, sys
 sys.path.insert(0, "tools")
-from render_metrics import cell, metrics
+from render_metrics import cell, metrics, table
 out, configs = pathlib.Path(sys.argv[1]), sys.argv[2:]
 
 rows = {}
@@ -76,12 +76,9 @@ for c in configs:
         key = scene + ("" if tag in ("", "main") else f" {tag}")
         rows.setdefault(method, {}).setdefault(key, {})[c] = cell(e)
 text = ""
-for method, table in rows.items():
+for method, scenes in rows.items():
     text += f"\n`{method}`, relative RMSE (mean relative bias):\n\n"
-    text += "| scene | " + " | ".join(c.replace(":", " b=") for c in configs) + " |\n"
-    text += "|---" * (len(configs) + 1) + "|\n"
-    for scene, cells in table.items():
-        text += f"| {scene} | " + " | ".join(cells.get(c, "") for c in configs) + " |\n"
+    text += table(scenes, configs, lambda c: c.replace(":", " b="))
 (out / "table.md").write_text(text)
 print(text)
 

@@ -62,7 +62,7 @@ done
 python3 - "$out" $laws <<'PY'
 import pathlib, sys
 sys.path.insert(0, "tools")
-from render_metrics import cell, metrics
+from render_metrics import cell, metrics, table
 out, laws = pathlib.Path(sys.argv[1]), sys.argv[2:]
 
 rows = {}
@@ -70,10 +70,7 @@ for law in laws:
     for scene, _, method, e in metrics(out / law):
         rows.setdefault(scene, {})[(method, law)] = cell(e)
 cols = [(m, law) for m in ("learned", "manual") for law in laws]
-text = "| scene | " + " | ".join(f"{m}, {law}" for m, law in cols) + " |\n"
-text += "|---" * (len(cols) + 1) + "|\n"
-for scene, cells in rows.items():
-    text += f"| {scene} | " + " | ".join(cells.get(c, "") for c in cols) + " |\n"
+text = table(rows, cols, lambda c: f"{c[0]}, {c[1]}")
 (out / "table.md").write_text(text)
 print(text)
 PY

@@ -1,7 +1,8 @@
 """Reading `svkernel render` outputs for the tables of tools/*.sh.
 
-    from render_metrics import cell, metrics
+    from render_metrics import cell, metrics, table
     for scene, tag, method, m in metrics(folder): ...
+    text = table(rows, columns, header)
 
 Standard library only.
 """
@@ -26,3 +27,14 @@ def cell(e):
     v = e["rel_rmse"]
     rmse = "< noise" if not v else f"{100 * v:.1f} %"
     return f"{rmse} ({100 * e['rel_bias']:+.1f} %)"
+
+
+def table(rows, columns, header=str):
+    """A markdown table: one line per scene of `rows` ({scene: {column:
+    cell}}), one column per entry of `columns` headed by header(column);
+    missing cells are empty."""
+    text = "| scene | " + " | ".join(header(c) for c in columns) + " |\n"
+    text += "|---" * (len(columns) + 1) + "|\n"
+    for scene, cells in rows.items():
+        text += f"| {scene} | " + " | ".join(cells.get(c, "") for c in columns) + " |\n"
+    return text

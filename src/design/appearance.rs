@@ -544,10 +544,8 @@ impl Appearance {
         let n_k = self.offsets.len();
         let stack = lin.stack.as_ref();
         let nodes_len = stack.map_or(0, |s| s.alpha.len());
-        let two_len = match stack.and_then(|s| s.two_scale.as_ref()) {
-            Some(_) => nodes_len,
-            None => 0,
-        };
+        let two_scale = stack.is_some_and(|s| s.two_scale.is_some());
+        let two_len = if two_scale { nodes_len } else { 0 };
         let per = n.div_ceil(BLOCKS);
         let mut pool = std::mem::take(&mut *self.scratch.lock().expect("scratch"));
         pool.resize_with(BLOCKS, Default::default);
