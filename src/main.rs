@@ -303,15 +303,19 @@ struct DesignArgs {
     /// uniform, or disk:R (a disk of radius R MFP at the texture's centre).
     #[arg(long, default_value = "uniform")]
     illumination: String,
-    /// Projected fixed-point steps u ← clip(u + target − M(u)) before
-    /// L-BFGS-B, at most (they stop at the first that raises the objective).
-    #[arg(long, default_value_t = 30)]
+    /// Projected fixed-point steps u ← clip(u + β(target − M(u))) before
+    /// L-BFGS-B, at most (a step that raises the objective halves β; they
+    /// stop when β < 0.2 or a step gains < 0.5 %).
+    #[arg(long, default_value_t = svkernel::design::Settings::default().warm_start)]
     warm_start: usize,
     /// L-BFGS-B iterations per channel.
-    #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u64).range(1..))]
+    #[arg(long, default_value_t = svkernel::design::Settings::default().iterations as u64,
+          value_parser = clap::value_parser!(u64).range(1..))]
     iterations: u64,
-    /// Rounds of re-anchoring the kernel shapes (learned).
-    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u64).range(1..))]
+    /// L-BFGS-B rounds (learned): the kernel shapes are anchored at the
+    /// current map before each.
+    #[arg(long, default_value_t = svkernel::design::Settings::default().rounds as u64,
+          value_parser = clap::value_parser!(u64).range(1..))]
     rounds: u64,
     /// Weight W of the smoothness term W·mean((α_e − α_e')²) over adjacent texels.
     #[arg(long, default_value_t = 0.0)]

@@ -56,7 +56,7 @@ use std::sync::Arc;
 pub const ANCHOR_BINS: usize = 64;
 
 /// Pixel blocks of the parallel sums (fixed: results independent of threads).
-const BLOCKS: usize = 8;
+const BLOCKS: usize = 4;
 
 /// The light over the texture.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -197,6 +197,10 @@ pub struct Appearance {
     /// The gradient's per-block buffers, kept between calls (fresh ones
     /// would be page-faulted in on every call).
     scratch: std::sync::Mutex<Vec<Part>>,
+    /// Stacks and partial-derivative buffers of finished evaluations, for
+    /// reuse ([`Self::release`]).
+    spare_stacks: std::sync::Mutex<Vec<BlurStack>>,
+    spare_partials: std::sync::Mutex<Vec<Vec<[f64; 6]>>>,
 }
 
 /// One pixel block's share of a gradient: texel weights, and node weights
@@ -294,6 +298,8 @@ impl Appearance {
             space: AlbedoSpace::default(),
             space_blur: SPACE_BLUR,
             scratch: Default::default(),
+            spare_stacks: Default::default(),
+            spare_partials: Default::default(),
         })
     }
 
@@ -368,7 +374,8 @@ impl Appearance {
     fn stack(&self, alpha: &[f64]) -> Option<Stacks> {
         let build = |values: &[f64]| {
             self.grid.as_ref().map(|g| {
-                let mut s = g.clone();
+                let spare = self.spare_stacks.lock().expect("spare stacks").pop();
+                let mut s = spare.unwrap_or_else(|| g.clone());
                 s.build(values);
                 s
             })
@@ -516,10 +523,31 @@ impl Appearance {
     pub fn appearance(&self, alpha: &[f64], anchor: &Anchor) -> Vec<f64> {
         assert_eq!(alpha.len(), self.len(), "map shape");
         let stack = self.stack(alpha);
-        (0..self.len())
+        let m = (0..self.len())
             .into_par_iter()
             .map(|e| self.pixel(alpha, stack.as_ref(), anchor, e, None))
-            .collect()
+            .collect();
+        self.keep_stacks(stack);
+        m
+    }
+
+    /// Hands a finished linearization's buffers back for reuse by the next
+    /// evaluation (fresh ones of tens of MB would be page-faulted in).
+    pub fn release(&self, lin: Linearization) {
+        self.keep_stacks(lin.stack);
+        self.spare_partials
+            .lock()
+            .expect("spare partials")
+            .push(lin.partials);
+    }
+
+    fn keep_stacks(&self, stacks: Option<Stacks>) {
+        let Some(s) = stacks else { return };
+        let mut spare = self.spare_stacks.lock().expect("spare stacks");
+        spare.push(s.alpha);
+        if let Some(t) = s.two_scale {
+            spare.extend([t.phi, t.residual]);
+        }
     }
 
     /// M of map `alpha` with what its gradient needs ([`Self::gradient`]).
@@ -527,7 +555,10 @@ impl Appearance {
         assert_eq!(alpha.len(), self.len(), "map shape");
         let stack = self.stack(alpha);
         let n_k = self.offsets.len();
-        let mut partials = vec![[0.0; 6]; self.len() * n_k];
+        let spare = self.spare_partials.lock().expect("spare partials").pop();
+        let mut partials = spare.unwrap_or_default();
+        partials.clear();
+        partials.resize(self.len() * n_k, [0.0; 6]);
         let m = partials
             .par_chunks_mut(n_k)
             .enumerate()
@@ -598,47 +629,50 @@ impl Appearance {
                 (texels, nodes, nodes_phi, nodes_res)
             })
             .collect();
-        // Summed in block order per element (chunks in parallel).
-        let sum = |pick: &(dyn Fn(&Part) -> &Vec<f64> + Sync), len: usize| {
-            let mut out = vec![0.0; len];
+        // Summed into the first block's buffers in block order per element
+        // (chunks in parallel).
+        let mut parts = parts;
+        let (head, rest) = parts.split_at_mut(1);
+        let add = |out: &mut Vec<f64>, pick: &(dyn Fn(&Part) -> &Vec<f64> + Sync)| {
             out.par_chunks_mut(1 << 14)
                 .enumerate()
                 .for_each(|(c, chunk)| {
                     let at = c << 14;
-                    for p in &parts {
+                    for p in rest.iter() {
                         for (a, b) in chunk.iter_mut().zip(&pick(p)[at..]) {
                             *a += b;
                         }
                     }
                 });
-            out
         };
-        let mut texels = sum(&|p| &p.0, n);
-        let nodes = sum(&|p| &p.1, nodes_len);
-        let (nodes_phi, nodes_res) = (sum(&|p| &p.2, two_len), sum(&|p| &p.3, two_len));
-        *self.scratch.lock().expect("scratch") = parts;
-        let Some(s) = stack else {
-            return texels;
-        };
-        s.alpha.adjoint(&nodes, &mut texels);
-        if let Some(t) = &s.two_scale {
-            // α_t's parts: ∂/∂α = g_r + Bᵀ(φ′(ᾱ)·g_φ − g_r), with g_φ and g_r
-            // the texel gradients through the φ(ᾱ) and α − ᾱ stacks.
-            let (mut g_phi, mut g_res) = (vec![0.0; n], vec![0.0; n]);
-            t.phi.adjoint(&nodes_phi, &mut g_phi);
-            t.residual.adjoint(&nodes_res, &mut g_res);
-            let h: Vec<f64> = (0..n)
-                .map(|k| self.space.forward_derivative(t.mean[k]) * g_phi[k] - g_res[k])
-                .collect();
-            let back = if self.space_blur > 0.0 {
-                pyramid::blur_transpose(&self.texel_grid(Vec::new()), self.space_blur, &h)
-            } else {
-                h
-            };
-            for k in 0..n {
-                texels[k] += g_res[k] + back[k];
+        let (texels, nodes, nodes_phi, nodes_res) = &mut head[0];
+        add(texels, &|p| &p.0);
+        add(nodes, &|p| &p.1);
+        add(nodes_phi, &|p| &p.2);
+        add(nodes_res, &|p| &p.3);
+        let mut texels = std::mem::take(texels);
+        if let Some(s) = stack {
+            s.alpha.adjoint(nodes, &mut texels);
+            if let Some(t) = &s.two_scale {
+                // α_t's parts: ∂/∂α = g_r + Bᵀ(φ′(ᾱ)·g_φ − g_r), with g_φ and g_r
+                // the texel gradients through the φ(ᾱ) and α − ᾱ stacks.
+                let (mut g_phi, mut g_res) = (vec![0.0; n], vec![0.0; n]);
+                t.phi.adjoint(nodes_phi, &mut g_phi);
+                t.residual.adjoint(nodes_res, &mut g_res);
+                let h: Vec<f64> = (0..n)
+                    .map(|k| self.space.forward_derivative(t.mean[k]) * g_phi[k] - g_res[k])
+                    .collect();
+                let back = if self.space_blur > 0.0 {
+                    pyramid::blur_transpose(&self.texel_grid(Vec::new()), self.space_blur, &h)
+                } else {
+                    h
+                };
+                for k in 0..n {
+                    texels[k] += g_res[k] + back[k];
+                }
             }
         }
+        *self.scratch.lock().expect("scratch") = parts;
         texels
     }
 
@@ -961,7 +995,13 @@ mod tests {
                     .map(|(x, y)| x * y)
                     .sum()
             };
-            let grad = m.gradient(&m.linearize(&alpha, &anchor), &anchor, &g);
+            let lin = m.linearize(&alpha, &anchor);
+            let grad = m.gradient(&lin, &anchor, &g);
+            // Evaluations that reuse the released buffers give the same bits.
+            m.release(lin);
+            let again = m.linearize(&alpha, &anchor);
+            assert_eq!(m.gradient(&again, &anchor, &g), grad, "{method:?}: reuse");
+            assert_eq!(m.appearance(&alpha, &anchor), again.m, "{method:?}: reuse");
             let scale = grad.iter().fold(0.0f64, |s, v| s.max(v.abs()));
             assert!(scale > 0.0, "{method:?}: zero gradient");
             for t in [0, 5, 31, 40, nx * ny - 1] {

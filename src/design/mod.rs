@@ -16,20 +16,24 @@
 //! (a tabulated monotone map): in u the appearance is close to a blur of u, so the
 //! problem is well scaled over the whole gamut, and the bounds stay a box.
 //! 1. **Warm start**: up to `warm_start` projected fixed-point steps
-//!    u ← Π(u + T − M(u)) (Van Cittert 1931), one model evaluation each,
-//!    stopped at the first step that raises F (its map discarded). The
-//!    iteration is not monotone (a frequency whose response H lies outside
-//!    (0, 2) grows by |1 − H| per step); on the shipped line drawing F
-//!    fell for 16 steps and then rose.
-//!    For a blur with transfer H ∈ (0, 1] each step shrinks a frequency's
-//!    error by 1 − H, where gradient steps on F shrink it by about 1 − H²:
-//!    the mid frequencies that scattering damps converge far sooner.
+//!    u ← Π(u + β(T − M(u))) (Van Cittert 1931, relaxed), one model
+//!    evaluation each, each from the best map so far. For a blur with
+//!    transfer H ∈ (0, 1] each step shrinks a frequency's error by
+//!    1 − βH, where gradient steps on F shrink it by about 1 − H²: the mid
+//!    frequencies that scattering damps converge far sooner. The iteration
+//!    is not monotone (a frequency whose response lies outside (0, 2/β)
+//!    grows, and the gamut clamps); a step that raises F is discarded and
+//!    halves β. The warm start ends when β < [`MIN_RELAXATION`] or a step
+//!    lowers F by less than [`MIN_GAIN`].
 //! 2. **L-BFGS-B** (Byrd, Lu, Nocedal & Zhu 1995; the `rcompat-lbfgsb`
 //!    crate) on F and its exact gradient, `iterations` per channel split
 //!    over `rounds`. `learned`'s kernel shapes are anchored at the naive map
-//!    and re-anchored at the current map before each further round (the
-//!    appearance module's docs); the warm start ignores the smoothness term,
-//!    L-BFGS-B minimises all of F.
+//!    for the warm start and re-anchored at the current map before each
+//!    round (the appearance module's docs); the warm start ignores the
+//!    smoothness term, L-BFGS-B minimises all of F.
+//!
+//! The model's appearance of the designed map (`predicted`) is anchored at
+//! that map, as the renderer anchors its kernels.
 //!
 //! The **naive** map, the baseline, gives every texel the albedo whose
 //! homogeneous material has the target's reflectance: R_d(α) = T (clamped
@@ -62,8 +66,8 @@ pub struct Settings {
     pub warm_start: usize,
     /// L-BFGS-B iterations per channel, over all rounds.
     pub iterations: usize,
-    /// Anchor rounds (learned): the kernel shapes are re-anchored at the
-    /// current map before each round after the first.
+    /// L-BFGS-B rounds (learned): the kernel shapes are re-anchored at the
+    /// current map before each.
     pub rounds: usize,
     /// Smoothness weight W.
     pub smoothness: f64,
@@ -82,8 +86,8 @@ impl Default for Settings {
             albedo_range: [0.2, 0.99],
             illumination: Illumination::Uniform,
             warm_start: 30,
-            iterations: 20,
-            rounds: 2,
+            iterations: 10,
+            rounds: 1,
             smoothness: 0.0,
             quadrature: Quadrature::default(),
             albedo_space: AlbedoSpace::default(),
@@ -190,6 +194,12 @@ pub fn naive_albedo(basis: &BasisModel, t: f64, [lo, hi]: [f64; 2]) -> f64 {
     0.5 * (a + b)
 }
 
+/// The warm start ends once rises have halved its relaxation β below this.
+pub const MIN_RELAXATION: f64 = 0.2;
+
+/// The warm start ends once a step lowers F by less than this fraction.
+pub const MIN_GAIN: f64 = 0.005;
+
 /// Nodes of [`Reflectance`].
 const REFLECTANCE_NODES: usize = 4096;
 
@@ -282,7 +292,6 @@ fn misfit(m: &[f64], target: &[f64]) -> f64 {
 /// and the number of model evaluations.
 struct Solved {
     alpha: Vec<f64>,
-    anchor: appearance::Anchor,
     steps: Vec<Step>,
     stop: String,
     evaluations: usize,
@@ -316,26 +325,40 @@ fn solve_channel(
     let mut evaluations = 0;
     let mut x = naive.to_vec();
     let mut anchor = app.anchor(&x);
-    // The warm start: projected fixed-point steps u ← Π(u + T − M(u)),
-    // until F rises; then back to the best map.
+    // The warm start: projected fixed-point steps u ← Π(u + β(T − M(u)))
+    // from the best map so far; a step that raises F halves β.
     let mut u: Vec<f64> = x.iter().map(|&a| coord.u_of(a)).collect();
-    let mut best = f64::INFINITY;
-    let mut best_x = x.clone();
+    let (mut best, mut best_u, mut best_m) = (f64::INFINITY, u.clone(), Vec::new());
+    let mut beta = 1.0;
     for k in 0..settings.warm_start {
         let m = app.appearance(&x, &anchor);
         evaluations += 1;
         progress(evaluations);
         let f = full(&x, &m);
         steps.push(step(Stage::FixedPoint, 0, k, f));
-        if f > best {
-            x = best_x;
-            break;
+        if f < best {
+            let gain = (best - f) / f;
+            (best, best_u, best_m) = (f, u, m);
+            if gain < MIN_GAIN {
+                break;
+            }
+        } else {
+            beta *= 0.5;
+            if beta < MIN_RELAXATION {
+                break;
+            }
         }
-        (best, best_x) = (f, x.clone());
-        for ((v, mm), tt) in u.iter_mut().zip(&m).zip(target) {
-            *v = (*v + tt - mm).clamp(u_lo, u_hi);
-        }
+        u = best_u
+            .iter()
+            .zip(&best_m)
+            .zip(target)
+            .map(|((v, mm), tt)| (v + beta * (tt - mm)).clamp(u_lo, u_hi))
+            .collect();
         x = u.iter().map(|&v| coord.alpha(v).0).collect();
+    }
+    let moved = best.is_finite();
+    if moved {
+        x = best_u.iter().map(|&v| coord.alpha(v).0).collect();
     }
     let rounds = if settings.method == Method::Learned {
         settings.rounds
@@ -345,7 +368,7 @@ fn solve_channel(
     let mut done = 0;
     let mut stop = String::from("no iterations");
     for round in 0..rounds {
-        if round > 0 {
+        if round > 0 || moved {
             anchor = app.anchor(&x);
         }
         let iters = (settings.iterations - done) / (rounds - round);
@@ -375,7 +398,10 @@ fn solve_channel(
                 .zip(&sg)
                 .zip(&slope)
                 .map(|((a, b), d)| (a + b) * d);
-            (misfit(&lin.m, target) + s, du.collect())
+            let f = misfit(&lin.m, target) + s;
+            let du = du.collect();
+            app.release(lin);
+            (f, du)
         };
         let cache: RefCell<Option<(Vec<f64>, Vec<f64>)>> = RefCell::new(None);
         let accepted = RefCell::new(Vec::new());
@@ -422,7 +448,6 @@ fn solve_channel(
     }
     Ok(Solved {
         alpha: x,
-        anchor,
         steps,
         stop,
         evaluations,
@@ -569,7 +594,7 @@ impl<'a> Designer<'a> {
             &mut progress,
         )?;
         Ok(ChannelDesign {
-            predicted: app.appearance(&s.alpha, &s.anchor),
+            predicted: app.appearance(&s.alpha, &app.anchor(&s.alpha)),
             predicted_naive: app.appearance(naive, &app.anchor(naive)),
             albedo: s.alpha,
             history: s.steps,
