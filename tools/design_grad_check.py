@@ -30,7 +30,10 @@ anchor selects per (texel, offset). This script re-implements, in float64:
 * M_e = sum_k W_k S_k over lit x_i = x_e + delta_k with
   point S = R(d; alpha_e), factorized S = sqrt(R(d; alpha_i) R(d; alpha_e)),
   learned S = alpha_i R_1 + l_i l_e R_m(d; alpha_t)/alpha_t^2 with alpha_t
-  clamped to [0, 1] and l_i = alpha_i without a first-vertex model;
+  clamped to [0, 1] and l_i = alpha_i without a first-vertex model; R_1
+  scaled by the exported single-scattering factor and R_m/alpha^2 by the
+  exported normalisation c(alpha) (linear in sqrt(1 - alpha) between its
+  nodes), which make the offsets integrate a homogeneous profile exactly;
 * alpha_t in the exported space: linear, the mean of alpha under the
   all-vertex reads; otherwise two-scale, phi^-1(mean of phi(abar)) + mean
   of (alpha - abar), with abar the map (edge texels extended) convolved
@@ -193,8 +196,19 @@ def check(p):
         lit = xi**2 + yi**2 <= light["radius"] ** 2
     d = np.hypot(offs[:, 0], offs[:, 1])
     r = np.maximum(d, p["r_min"])
-    single = np.array([basis.single_exitance(v) for v in r])
     w = offs[:, 2]
+    # The quadrature's normalisation: single scattering by one factor, the
+    # multiple term by c(alpha), linear in y = sqrt(1 - alpha) between the
+    # exported nodes (flat beyond them).
+    norm = p["normalisation"]
+    single = norm["single"] * np.array([basis.single_exitance(v) for v in r])
+    ys = np.linspace(norm["y"][0], norm["y"][1], len(norm["c"]))
+    order = np.argsort(ys)
+    ys, cs = jnp.asarray(ys[order]), jnp.asarray(np.asarray(norm["c"])[order])
+
+    def multi(a):
+        c = jnp.interp(jnp.sqrt(1 - jnp.clip(a, 0.0, 1.0)), ys, cs)
+        return c * basis.multi_over_alpha2(jnp.asarray(r), a)
     method = p["method"]
     levels = stack_levels(p) if method == "learned" else None
     space = p.get("space", {"kind": "linear", "blur": 0.0})
@@ -222,7 +236,7 @@ def check(p):
         return jnp.zeros((n, len(offs))).at[ee, oo].add(v)
 
     def profile(a):
-        return a * single + a * a * basis.multi_over_alpha2(jnp.asarray(r), a)
+        return a * single + a * a * multi(a)
 
     def appearance(alpha):
         ai, ae = alpha[ti], alpha[:, None] * jnp.ones_like(xi)
@@ -242,7 +256,7 @@ def check(p):
             le = means(vals, p["reads_last"])
             li = means(vals, p["reads_first"]) if p["has_first"] else ai
             t = jnp.clip(at, 0.0, 1.0)
-            s = ai * single + li * le * basis.multi_over_alpha2(jnp.asarray(r), t)
+            s = ai * single + li * le * multi(t)
         return jnp.sum(jnp.where(lit, w * s, 0.0), axis=1)
 
     alpha = jnp.asarray(p["alpha"])

@@ -13,6 +13,9 @@
 //! the mixture's area density (1/MFP²). The same offsets everywhere make
 //! M a smooth, deterministic function of α: its quadrature error is one
 //! stencil's, not per-texel noise that an optimiser would learn to cancel.
+//! That error would bias every design, so the profile terms are normalised
+//! so that the offsets integrate a homogeneous profile exactly
+//! ([`Normalisation`]).
 //!
 //! # The models (per channel, unit density)
 //! * `point`: S = R(d; α_e) = α_e R₁(d) + α_e² Rₘ(d; α_e)/α_e².
@@ -30,7 +33,7 @@
 //!   (the renderer's two passes), on a grid of [`ANCHOR_BINS`] albedos
 //!   uniform in √(1 − α). With the shapes fixed, M is a smooth function of
 //!   α whose gradient this module computes exactly; the designer
-//!   re-anchors at its current map between rounds.
+//!   re-anchors at its current map before each L-BFGS-B round.
 //!
 //! The Gaussian means read a [`BlurStack`] (one of α and, in a two-scale
 //! space, one of φ(ᾱ) and one of α − ᾱ); the gradient runs the reads
@@ -187,6 +190,8 @@ pub struct Appearance {
     texel: f64,
     illumination: Illumination,
     offsets: Vec<Offset>,
+    /// The multiple-scattering term's normalisation ([`Normalisation`]).
+    norm: Normalisation,
     kernels: Option<Kernels>,
     /// The stack's grid (values unused): cloned per evaluation.
     pub(crate) grid: Option<BlurStack>,
@@ -263,7 +268,7 @@ impl Appearance {
         }
         let offsets = offsets(basis, [alpha_lo, alpha_hi], quadrature);
         let table = Arc::new(BasisTable::new(basis));
-        let offsets: Vec<Offset> = offsets
+        let mut offsets: Vec<Offset> = offsets
             .into_iter()
             .map(|(delta, weight)| {
                 let d = delta[0].hypot(delta[1]);
@@ -275,6 +280,14 @@ impl Appearance {
                 }
             })
             .collect();
+        // Single scattering: R₁ at unit density and albedo, normalised so
+        // that the offsets integrate it exactly (R₁(α) = α·∫R₁ dA).
+        let sum: f64 = offsets.iter().map(|o| o.weight * o.single).sum();
+        let single_scale = basis.r_1_m(1.0).0 / sum;
+        for o in &mut offsets {
+            o.single *= single_scale;
+        }
+        let norm = Normalisation::new(basis, &table, &offsets, single_scale);
         let (kernels, grid) = match (method, meta) {
             (Method::Learned, Some(meta)) => {
                 let (kernels, grid) = tabulate(meta, &offsets, nx, ny, texel);
@@ -293,6 +306,7 @@ impl Appearance {
             texel,
             illumination,
             offsets,
+            norm,
             kernels,
             grid,
             space: AlbedoSpace::default(),
@@ -505,6 +519,11 @@ impl Appearance {
                 "table_nodes": TABLE_NODES,
             },
             "offsets": self.offsets.iter().map(|o| [o.delta[0], o.delta[1], o.weight]).collect::<Vec<_>>(),
+            "normalisation": {
+                "single": self.norm.single,
+                "y": self.norm.y,
+                "c": self.norm.c,
+            },
             "levels": levels,
             "reads_all": reads(k.map(|k| &k.all), 1),
             "reads_last": reads(k.map(|k| &k.last), 0),
@@ -703,7 +722,7 @@ impl Appearance {
             let r = off.d.max(R_MIN);
             let w = off.weight;
             let profile = |a: f64| {
-                let (mm, dm) = b.multi_over_alpha2_grad(r, a);
+                let (mm, dm) = self.norm.multi(b, r, a);
                 let v = a * off.single + a * a * mm;
                 (v, off.single + 2.0 * a * mm + a * a * dm)
             };
@@ -728,7 +747,7 @@ impl Appearance {
                     let first = k.first.as_ref().map(|f| f.get(o, b0));
                     let li = first.map_or(ai, |f| mean(&stack.alpha, xe, f));
                     let t = at.clamp(0.0, 1.0);
-                    let (mm, dm) = b.multi_over_alpha2_grad(r, t);
+                    let (mm, dm) = self.norm.multi(b, r, t);
                     let s = ai * off.single + li * le * mm;
                     // l_i is the point albedo without a first-vertex model.
                     let (c_i, c_li) = match first {
@@ -746,6 +765,70 @@ impl Appearance {
             }
         }
         m
+    }
+}
+
+/// Nodes of [`Normalisation`], uniform in y = √(1 − α).
+const NORM_NODES: usize = 128;
+
+/// The albedo range of [`Normalisation`]'s table.
+const NORM_RANGE: [f64; 2] = [0.01, 0.999];
+
+/// The quadrature's normalisation of the multiple-scattering term: the
+/// fixed offsets integrate Rₘ(d; α)/α² to Σ_k W_k Rₘ(d_k; α)/α², which
+/// differs from the basis's Rₘ(α)/α² (−1 % to +5 % on the shipped basis;
+/// most where the profile reaches beyond the offsets, at α → 1). The term
+/// is scaled by c(α) = Rₘ(α)/Σ_k W_k Rₘ(d_k; α), so that a homogeneous map
+/// looks exactly like R_d(α) (a ratio estimator); c is tabulated at
+/// [`NORM_NODES`] albedos uniform in y = √(1 − α) and interpolated
+/// linearly in y.
+#[derive(Clone, Debug)]
+struct Normalisation {
+    /// y at the first and last node.
+    y: [f64; 2],
+    c: Vec<f64>,
+    /// The same for single scattering, one factor (R₁ ∝ α): ∫R₁ dA over
+    /// Σ_k W_k R₁(d_k), already applied to the offsets' R₁.
+    single: f64,
+}
+
+impl Normalisation {
+    fn new(basis: &BasisModel, table: &BasisTable, offsets: &[Offset], single: f64) -> Self {
+        let y = NORM_RANGE.map(|a| (1.0 - a).sqrt());
+        let c = (0..NORM_NODES)
+            .map(|j| {
+                let yj = y[0] + (y[1] - y[0]) * j as f64 / (NORM_NODES - 1) as f64;
+                let a = 1.0 - yj * yj;
+                let sum: f64 = offsets
+                    .iter()
+                    .map(|o| o.weight * table.multi_over_alpha2_grad(o.d.max(R_MIN), a).0)
+                    .sum();
+                basis.r_1_m(a).1 / (a * a * sum)
+            })
+            .collect();
+        Normalisation { y, c, single }
+    }
+
+    /// (c(α), dc/dα).
+    #[inline]
+    fn scale(&self, alpha: f64) -> (f64, f64) {
+        let yv = (1.0 - alpha).max(0.0).sqrt();
+        let h = (self.y[1] - self.y[0]) / (NORM_NODES - 1) as f64;
+        let f = ((yv - self.y[0]) / h).clamp(0.0, (NORM_NODES - 1) as f64);
+        let i = (f as usize).min(NORM_NODES - 2);
+        let slope = (self.c[i + 1] - self.c[i]) / h;
+        let c = self.c[i] + slope * (f - i as f64) * h;
+        // Flat beyond the table (clamped y).
+        let inside = yv > self.y[1].min(self.y[0]) && yv < self.y[1].max(self.y[0]);
+        (c, if inside { -slope * 0.5 / yv } else { 0.0 })
+    }
+
+    /// Rₘ(r; α)/α² normalised, and its α-derivative.
+    #[inline]
+    fn multi(&self, table: &BasisTable, r: f64, alpha: f64) -> (f64, f64) {
+        let (mm, dm) = table.multi_over_alpha2_grad(r, alpha);
+        let (c, dc) = self.scale(alpha);
+        (c * mm, c * dm + dc * mm)
     }
 }
 
@@ -1023,18 +1106,19 @@ mod tests {
 
     #[test]
     fn a_homogeneous_map_looks_like_its_reflectance() {
-        // The quadrature integrates the homogeneous profile: M = R_d(α)
-        // within 1 % for albedos inside the offsets' range.
+        // The normalised quadrature integrates the homogeneous profile:
+        // M = R_d(α) at every albedo, inside the offsets' range (drawn for
+        // [0.3, 0.95]) or not (without the normalisation: 4 % low at 0.99).
         let basis = crate::testing::shipped_basis();
         for method in [Method::Point, Method::Factorized, Method::Learned] {
             let m = model(method, 5, 5, Illumination::Uniform, &Quadrature::default());
-            for a in [0.3, 0.6, 0.9, 0.95] {
+            for a in [0.1, 0.3, 0.6, 0.9, 0.95, 0.99] {
                 let map = vec![a; 25];
                 let anchor = m.anchor(&map);
                 let got = m.appearance(&map, &anchor)[12];
                 let want = basis.r_d(a);
                 assert!(
-                    (got / want - 1.0).abs() < 0.01,
+                    (got / want - 1.0).abs() < 1e-3,
                     "{method:?} α = {a}: {got} vs R_d {want}"
                 );
             }
