@@ -639,9 +639,11 @@ fn write_outputs(
     let mut blocks = vec![
         Block::Para(format!(
             "Target `{}` ({ny} × {nx}, {} channel(s)), texel {} MFP, albedo range [{}, {}], \
-             {} illumination, forward model `{}`. {} of at most {} fixed-point steps over all \
-             channels (each channel's stop at the first that raises F), then {} L-BFGS-B \
-             iterations per channel, in {:.1} s ({} model evaluations), set-up {:.1} s.",
+             {} illumination, forward model `{}`. {} of at most {} relaxed fixed-point steps \
+             over all channels (a step that raises F is undone and halves the relaxation; \
+             each channel stops when it falls below {} or a step gains less than {} %), then \
+             {} L-BFGS-B iterations per channel{}, in {:.1} s ({} model evaluations), \
+             set-up {:.1} s.",
             opts.target.display(),
             target.len(),
             doc.texel,
@@ -654,7 +656,14 @@ fn write_outputs(
                 .filter(|h| h.stage == crate::design::Stage::FixedPoint)
                 .count(),
             doc.warm_start * target.len(),
+            crate::design::MIN_RELAXATION,
+            100.0 * crate::design::MIN_GAIN,
             doc.iterations,
+            if doc.method == Method::Learned.name() {
+                " from the kernel shapes re-anchored at the warm start's map (F jumps there)"
+            } else {
+                ""
+            },
             doc.solve_s,
             doc.evaluations,
             doc.setup_s,
