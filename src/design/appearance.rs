@@ -15,7 +15,7 @@
 //! stencil's, not per-texel noise that an optimiser would learn to cancel.
 //! That error would bias every design, so the profile terms are normalised
 //! so that the offsets integrate a homogeneous profile exactly
-//! ([`Normalisation`]).
+//! (the type `Normalisation`).
 //!
 //! # The models (per channel, unit density)
 //! * `point`: S = R(d; α_e) = α_e R₁(d) + α_e² Rₘ(d; α_e)/α_e².
