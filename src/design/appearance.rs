@@ -818,8 +818,8 @@ impl Normalisation {
         let i = (f as usize).min(NORM_NODES - 2);
         let slope = (self.c[i + 1] - self.c[i]) / h;
         let c = self.c[i] + slope * (f - i as f64) * h;
-        // Flat beyond the table (clamped y).
-        let inside = yv > self.y[1].min(self.y[0]) && yv < self.y[1].max(self.y[0]);
+        // Flat beyond the table (y clamped; y[0] > y[1]).
+        let inside = yv < self.y[0] && yv > self.y[1];
         (c, if inside { -slope * 0.5 / yv } else { 0.0 })
     }
 

@@ -292,6 +292,9 @@ fn misfit(m: &[f64], target: &[f64]) -> f64 {
 /// and the number of model evaluations.
 struct Solved {
     alpha: Vec<f64>,
+    /// The appearance of the naive map under its own anchor (the warm
+    /// start's first evaluation), if the warm start ran.
+    naive_m: Option<Vec<f64>>,
     steps: Vec<Step>,
     stop: String,
     evaluations: usize,
@@ -330,12 +333,16 @@ fn solve_channel(
     let mut u: Vec<f64> = x.iter().map(|&a| coord.u_of(a)).collect();
     let (mut best, mut best_u, mut best_m) = (f64::INFINITY, u.clone(), Vec::new());
     let mut beta = 1.0;
+    let mut naive_m = None;
     for k in 0..settings.warm_start {
         let m = app.appearance(&x, &anchor);
         evaluations += 1;
         progress(evaluations);
         let f = full(&x, &m);
         steps.push(step(Stage::FixedPoint, 0, k, f));
+        if k == 0 {
+            naive_m = Some(m.clone());
+        }
         if f < best {
             let gain = (best - f) / f;
             (best, best_u, best_m) = (f, u, m);
@@ -448,6 +455,7 @@ fn solve_channel(
     }
     Ok(Solved {
         alpha: x,
+        naive_m,
         steps,
         stop,
         evaluations,
@@ -595,7 +603,9 @@ impl<'a> Designer<'a> {
         )?;
         Ok(ChannelDesign {
             predicted: app.appearance(&s.alpha, &app.anchor(&s.alpha)),
-            predicted_naive: app.appearance(naive, &app.anchor(naive)),
+            predicted_naive: s
+                .naive_m
+                .unwrap_or_else(|| app.appearance(naive, &app.anchor(naive))),
             albedo: s.alpha,
             history: s.steps,
             stop: s.stop,
