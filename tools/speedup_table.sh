@@ -5,6 +5,7 @@
 #
 #   bash tools/speedup_table.sh [OUT]                 # default out/speedup_table
 #   SEQUENCE=independent bash tools/speedup_table.sh  # without the Sobol' points
+#   SAMPLING=profile bash tools/speedup_table.sh      # without the albedo guide
 #
 # Writes OUT/<scene>/compare.json (and its report) and OUT/table.md. About
 # 20 minutes on 2 cores. Needs python3 (standard library only).
@@ -12,11 +13,12 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 out=${1:-out/speedup_table}
 sequence=${SEQUENCE:-sobol}
+sampling=${SAMPLING:-importance}
 scenes=${SCENES:-"stripes checker complex color density features marble skin milk"}
 mkdir -p "$out"
 cargo build --release --quiet
 for s in $scenes; do
-  ./target/release/svkernel compare "$s" --sequence "$sequence" --out "$out/$s" > /dev/null
+  ./target/release/svkernel compare "$s" --sequence "$sequence" --sampling "$sampling" --out "$out/$s" > /dev/null
 done
 python3 - "$out" $scenes <<'PY'
 import json, pathlib, sys

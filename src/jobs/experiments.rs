@@ -192,7 +192,7 @@ fn configs(name: &str, settings: &Settings) -> Vec<Config> {
     if matches!(name, "stripes" | "checker" | "density") {
         // Manual's kernel does not depend on α₀: a second pass changes nothing.
         c.push(with(Method::Learned, &|k| k.variant.two_pass = true));
-        for s in [Sampling::Uniform, Sampling::Mis] {
+        for s in [Sampling::Uniform, Sampling::Profile, Sampling::Mis] {
             c.push(with(Method::Learned, &|k| k.sampling = s));
         }
     }
@@ -504,15 +504,20 @@ fn sections(rows: &[Row]) -> (Vec<Block>, Option<(usize, Vec<crate::jobs::plot::
     }
     b.push(Block::Heading(
         2,
-        "Uniform vs importance vs MIS sampling (learned)".into(),
+        "Uniform vs profile vs importance vs MIS sampling (learned)".into(),
     ));
     let mut table = Vec::new();
     for key in passes(rows) {
         let k = (key.0.as_str(), key.1.as_str());
-        let cells: Vec<Option<&Row>> = [Sampling::Uniform, Sampling::Importance, Sampling::Mis]
-            .into_iter()
-            .map(|s| find(rows, k, Method::Learned, "", s, None))
-            .collect();
+        let cells: Vec<Option<&Row>> = [
+            Sampling::Uniform,
+            Sampling::Profile,
+            Sampling::Importance,
+            Sampling::Mis,
+        ]
+        .into_iter()
+        .map(|s| find(rows, k, Method::Learned, "", s, None))
+        .collect();
         if cells[0].is_none() {
             continue;
         }
@@ -529,9 +534,11 @@ fn sections(rows: &[Row]) -> (Vec<Block>, Option<(usize, Vec<crate::jobs::plot::
         &[
             "scene",
             "noise at 1 s, uniform",
+            "profile",
             "importance",
             "MIS",
             "rel RMSE, uniform",
+            "profile",
             "importance",
             "MIS",
         ],
@@ -539,7 +546,9 @@ fn sections(rows: &[Row]) -> (Vec<Block>, Option<(usize, Vec<crate::jobs::plot::
     ));
     b.push(Block::Para(
         "Noise at equal time: ν·√t, the relative noise an image would have after one second \
-         (lower is better). Uniform disk sampling has unbounded variance here (R(r) ~ 1/r at \
+         (lower is better). `profile` draws r from the homogeneous profile and φ uniformly on \
+         the arc inside the light; `importance` also guides φ by the albedo along the arc. \
+         Uniform disk sampling has unbounded variance here (R(r) ~ 1/r at \
          the pixel: ∫(1/r)² r dr diverges), so its measured noise is itself unreliable."
             .into(),
     ));

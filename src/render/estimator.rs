@@ -13,7 +13,7 @@
 //! # Strategies ([`Sampling`])
 //! * `uniform` — x_i uniform in the disk (concentric map), p_u = 1/(πR²):
 //!   the seed's estimator.
-//! * `importance` — x_i = x_e + r(cos φ, sin φ) with r drawn from the
+//! * `profile` — x_i = x_e + r(cos φ, sin φ) with r drawn from the
 //!   homogeneous radial profile p(r; α_s, ρ_s) of the basis *truncated to
 //!   the radii that reach the disk*, r ∈ [max(0, D − R), D + R] (D = |x_e|),
 //!   by inverting its closed-form tail (safeguarded Newton), and φ uniform on
@@ -28,15 +28,30 @@
 //!   sample lands in the disk, and for a homogeneous medium S/p_i = m·θ/π
 //!   varies only through θ: the 1/r singularity of single scattering and the
 //!   profile's decay both cancel.
+//! * `importance` (the default) — r as for `profile`, and φ drawn on the arc
+//!   with a density proportional to the albedo along it (one bin per texel
+//!   of arc length, up to [`ARC_BINS`], each weighted by the albedo at its
+//!   centre plus a floor; uniform within a bin). Single scattering and the entry-side local term carry the
+//!   entry albedo α_i as a factor, and on a contrasted texture that factor
+//!   is most of what S/p_i varies with (on `stripes`, 0.3 | 0.95: with α_i
+//!   held constant `learned`'s noise at 64 spp falls from 12.4 % to 3.8 %).
+//!   A channel's guide cannot follow another channel's map, so on a
+//!   material of several channels each channel gets spp samples of its
+//!   own, guided by its own map and evaluated for it alone: as many
+//!   evaluations of S as one set of samples evaluated for every channel,
+//!   but one draw of x_i per evaluation instead of one per sample. The
+//!   guide costs up to [`ARC_BINS`] texel reads per draw; it depends only
+//!   on the albedo map, so every method sees the same x_i.
 //! * `mis` — the sample index j alternates (even: uniform, odd: importance)
 //!   and every sample is weighted by the balance heuristic
 //!   f/(n_u p_u + n_i p_i) (Veach 1997, §9.2.2).
 //!
-//! Measured (`svkernel compare --sampling …`, learned, 256 spp, 64²):
-//! importance alone beats MIS at equal time on `stripes`, `checker` and
-//! `density` (relative error 6.3 / 6.5 / 8.3 % against 8.2 / 9.1 / 9.6 %);
-//! uniform sampling has infinite variance (the 1/r of single scattering) and
-//! errs by 23–215 %. `importance` is the CLI default.
+//! Measured (`svkernel compare --sampling …`, learned, 256 spp, 64²,
+//! before the albedo guide): `profile` alone beat MIS at equal time on
+//! `stripes`, `checker` and `density` (relative error 6.3 / 6.5 / 8.3 %
+//! against 8.2 / 9.1 / 9.6 %); uniform sampling has infinite variance (the
+//! 1/r of single scattering) and errs by 23–215 %. `importance` is the CLI
+//! default (docs/measurements.md has its speed-ups against `profile`).
 //!
 //! # Streams and errors ([`Sequence`])
 //! Whatever the method, sample j of pixel p is made of the same numbers:
@@ -88,6 +103,9 @@ pub const IS_ALBEDO_FLOOR: f64 = 0.05;
 #[serde(rename_all = "lowercase")]
 pub enum Sampling {
     Uniform,
+    /// The radial profile, φ uniform on the arc (no albedo guide).
+    Profile,
+    /// The radial profile, φ guided by the albedo on the arc.
     Importance,
     Mis,
 }
@@ -96,12 +114,13 @@ impl Sampling {
     pub fn parse(s: &str) -> crate::Result<Self> {
         match s {
             "uniform" => Ok(Sampling::Uniform),
+            "profile" => Ok(Sampling::Profile),
             "importance" => Ok(Sampling::Importance),
             "mis" => Ok(Sampling::Mis),
             _ => Err(crate::Error::param(
                 "sampling",
                 s,
-                "uniform, importance or mis",
+                "uniform, profile, importance or mis",
             )),
         }
     }
@@ -109,6 +128,7 @@ impl Sampling {
     pub fn name(self) -> &'static str {
         match self {
             Sampling::Uniform => "uniform",
+            Sampling::Profile => "profile",
             Sampling::Importance => "importance",
             Sampling::Mis => "mis",
         }
@@ -479,6 +499,110 @@ impl RadialSampler {
     }
 }
 
+/// The most angular bins of the albedo guide on an arc ([`ArcGuide`]).
+pub const ARC_BINS: usize = 32;
+
+/// Share of the mean bin weight added to every bin of an [`ArcGuide`], so
+/// that no part of the arc has a vanishing density (S need not vanish
+/// where α does).
+const ARC_FLOOR: f64 = 0.05;
+
+/// The angle φ of x_i on the arc of radius r around x_e that lies inside
+/// the disk (half-angle θ about the direction `toward` the disk's centre),
+/// drawn with a density proportional to one channel's albedo along the
+/// arc: the arc is cut into N equal bins, one per texel of its length
+/// (2θr/τ, at least 2 and at most [`ARC_BINS`]), bin b weighs
+/// w_b = α(x_b) + [`ARC_FLOOR`]·mean(α) at the bin's centre x_b, and φ is
+/// uniform within the bin. Relative to φ uniform on the arc the density
+/// is multiplied by N·w_b/Σw. S of a channel carries that channel's α at
+/// x_i (single scattering and the entry-side local term), so on a
+/// contrasted texture this takes most of the albedo's variation out of
+/// S/p. Without a channel (the `profile` strategy) one bin covers the arc.
+struct ArcGuide {
+    /// φ at the arc's start, the bin width 2θ/N, and N.
+    start: f64,
+    width: f64,
+    bins: usize,
+    /// Weights and their cumulative sums (`cdf[0] = 0`, `cdf[N] = Σw`).
+    weight: [f64; ARC_BINS],
+    cdf: [f64; ARC_BINS + 1],
+}
+
+impl ArcGuide {
+    fn new(
+        sv: &SvBssrdf,
+        xe: [f64; 2],
+        r: f64,
+        toward: f64,
+        theta: f64,
+        channel: Option<usize>,
+    ) -> Self {
+        let start = toward - theta;
+        let mut weight = [1.0; ARC_BINS];
+        let mut bins = 1;
+        if let Some(c) = channel.filter(|_| theta > 0.0 && r > 0.0) {
+            let map = sv.albedo_map(c);
+            let inv = 1.0 / map.texel;
+            bins = ((2.0 * theta * r * inv).ceil() as usize).clamp(2, ARC_BINS);
+            let width = 2.0 * theta / bins as f64;
+            // In texel units (column from −x, row from +y, as TexelMap::at):
+            // the centre x_e, then the bin centres by rotation, one complex
+            // product per bin.
+            let (nx, ny) = (map.nx as i64, map.ny as i64);
+            let (cu, cv) = (xe[0] * inv + 0.5 * nx as f64, 0.5 * ny as f64 - xe[1] * inv);
+            let (s0, c0) = (start + 0.5 * width).sin_cos();
+            let (sd, cd) = width.sin_cos();
+            let (mut du, mut dv) = (r * inv * c0, r * inv * s0);
+            for w in weight.iter_mut().take(bins) {
+                let j = ((cu + du).floor() as i64).clamp(0, nx - 1);
+                let i = ((cv - dv).floor() as i64).clamp(0, ny - 1);
+                *w = map.values[(i * nx + j) as usize];
+                (du, dv) = (du * cd - dv * sd, du * sd + dv * cd);
+            }
+            let floor = ARC_FLOOR * weight[..bins].iter().sum::<f64>() / bins as f64 + 1e-12;
+            for w in weight.iter_mut().take(bins) {
+                *w += floor;
+            }
+        }
+        let mut cdf = [0.0; ARC_BINS + 1];
+        for b in 0..bins {
+            cdf[b + 1] = cdf[b] + weight[b];
+        }
+        ArcGuide {
+            start,
+            width: 2.0 * theta / bins as f64,
+            bins,
+            weight,
+            cdf,
+        }
+    }
+
+    /// φ from one uniform number in [0, 1), and the density's factor
+    /// relative to φ uniform on the arc.
+    #[inline]
+    fn sample(&self, u: f64) -> (f64, f64) {
+        let n = self.bins;
+        let total = self.cdf[n];
+        let target = u * total;
+        let b = self.cdf[1..n].iter().take_while(|&&c| c <= target).count();
+        let within = ((target - self.cdf[b]) / self.weight[b]).clamp(0.0, 1.0);
+        let phi = self.start + (b as f64 + within) * self.width;
+        (phi, n as f64 * self.weight[b] / total)
+    }
+
+    /// The density's factor at angle φ (any branch of the angle).
+    #[inline]
+    fn factor(&self, phi: f64) -> f64 {
+        let n = self.bins;
+        if self.width <= 0.0 || n == 1 {
+            return 1.0;
+        }
+        let offset = (phi - self.start).rem_euclid(2.0 * PI);
+        let b = ((offset / self.width) as usize).min(n - 1);
+        n as f64 * self.weight[b] / self.cdf[n]
+    }
+}
+
 /// Renders `sv` over `view` (module docs). Deterministic for any thread count.
 pub fn render(sv: &SvBssrdf, view: &View, settings: &Settings) -> Image {
     let n = view.resolution;
@@ -507,7 +631,7 @@ pub fn render(sv: &SvBssrdf, view: &View, settings: &Settings) -> Image {
 /// Per-group running sums of the sample values: (n, Σv, Σv²) per channel.
 #[derive(Clone, Copy, Default)]
 struct Group {
-    n: f64,
+    n: [f64; 3],
     sum: [f64; 3],
     sq: [f64; 3],
 }
@@ -530,79 +654,108 @@ fn pixel(
         RadialSampler::new(sv, alpha, sv.density_at(centre[0], centre[1]))
     });
     let radius = view.light_radius;
+    let guided = settings.sampling != Sampling::Profile;
     let p_uniform = 1.0 / (PI * radius * radius);
     let spp = settings.spp as u64;
     let (n_u, n_i) = match settings.sampling {
         Sampling::Uniform => (spp as f64, 0.0),
-        Sampling::Importance => (0.0, spp as f64),
+        Sampling::Profile | Sampling::Importance => (0.0, spp as f64),
         Sampling::Mis => (spp.div_ceil(2) as f64, (spp / 2) as f64),
+    };
+    // With the albedo guide, a material of several channels gives each
+    // channel spp samples of its own, guided by its own map and evaluated
+    // for it alone (the same number of evaluations as one set of samples
+    // evaluated for every channel); otherwise one set serves every channel.
+    let passes: Vec<Option<usize>> = if guided && needs_is && channels > 1 {
+        (0..channels).map(Some).collect()
+    } else {
+        vec![None]
     };
     let mut groups = [Group::default(); 2];
     // With Sobol' points each group's samples run in RANDOMIZATIONS blocks
     // (as equal as spp allows), each block one scrambled sequence.
     let mut blocks = [[Group::default(); RANDOMIZATIONS as usize]; 2];
-    for j in 0..spp {
-        let mut block = 0;
-        let use_is = match settings.sampling {
-            Sampling::Uniform => false,
-            Sampling::Importance => true,
-            Sampling::Mis => j % 2 == 1,
-        };
-        let (xe, u) = match settings.sequence {
-            Sequence::Independent => {
-                let mut rng = PathRng::new(settings.seed, p as u64 * spp + j);
-                let xe = [corner[0] + h * rng.uniform(), corner[1] + h * rng.uniform()];
-                (xe, [rng.uniform(), rng.uniform()])
+    // Every pass draws the pixel's numbers: a channel's samples differ from
+    // another's only by their guides, so a grey map renders the same in one
+    // channel or three.
+    let key = p as u64;
+    for &pass in &passes {
+        let evaluated = pass.map_or(0..channels, |c| c..c + 1);
+        let guide_channel = guided.then_some(pass.unwrap_or(0));
+        for j in 0..spp {
+            let mut block = 0;
+            let use_is = match settings.sampling {
+                Sampling::Uniform => false,
+                Sampling::Profile | Sampling::Importance => true,
+                Sampling::Mis => j % 2 == 1,
+            };
+            let (xe, u) = match settings.sequence {
+                Sequence::Independent => {
+                    let mut rng = PathRng::new(settings.seed, key * spp + j);
+                    let xe = [corner[0] + h * rng.uniform(), corner[1] + h * rng.uniform()];
+                    (xe, [rng.uniform(), rng.uniform()])
+                }
+                Sequence::Sobol => {
+                    // Sample i of its strategy's n_s; block k holds i ≡ k.
+                    let i = if settings.sampling == Sampling::Mis {
+                        j / 2
+                    } else {
+                        j
+                    };
+                    let (k, index) = (i % RANDOMIZATIONS, i / RANDOMIZATIONS);
+                    block = k as usize;
+                    let v = sobol_point(settings.seed, key, use_is, k, index);
+                    ([corner[0] + h * v[0], corner[1] + h * v[1]], [v[2], v[3]])
+                }
+            };
+            let dist = xe[0].hypot(xe[1]);
+            let window = sampler.as_ref().map(|s| s.window(dist, radius));
+            // Towards the disk's centre: the middle of every arc.
+            let toward = (-xe[1]).atan2(-xe[0]);
+            let guide = |r: f64, theta: f64| ArcGuide::new(sv, xe, r, toward, theta, guide_channel);
+            let (xi, sampled_pdf) = match (&sampler, window, use_is) {
+                (Some(s), Some(w), true) => {
+                    // r from the truncated profile, φ on the arc inside the disk.
+                    let r = s.sample(u[0], w);
+                    let theta = arc_half_angle(dist, r, radius);
+                    let (phi, arc) = guide(r, theta).sample(u[1]);
+                    let xi = [xe[0] + r * phi.cos(), xe[1] + r * phi.sin()];
+                    (xi, Some(s.area_pdf(r, theta, w) * arc))
+                }
+                _ => {
+                    let d = sample_disk_concentric([u[0], u[1]]);
+                    ([radius * d[0], radius * d[1]], None)
+                }
+            };
+            let inside = xi[0] * xi[0] + xi[1] * xi[1] <= radius * radius;
+            let pu = if inside { p_uniform } else { 0.0 };
+            let pi = match (&sampler, window, sampled_pdf) {
+                (_, _, Some(p)) => p,
+                (Some(s), Some(w), None) => {
+                    let (dx, dy) = (xi[0] - xe[0], xi[1] - xe[1]);
+                    let r = dx.hypot(dy);
+                    let theta = arc_half_angle(dist, r, radius);
+                    s.area_pdf(r, theta, w) * guide(r, theta).factor(dy.atan2(dx))
+                }
+                _ => 0.0,
+            };
+            let n_s = if use_is { n_i } else { n_u };
+            let denom = n_u * pu + n_i * pi;
+            let g = match settings.sequence {
+                Sequence::Independent => &mut groups[usize::from(use_is)],
+                Sequence::Sobol => &mut blocks[usize::from(use_is)][block],
+            };
+            for c in evaluated.clone() {
+                g.n[c] += 1.0;
             }
-            Sequence::Sobol => {
-                // Sample i of its strategy's n_s; block k holds i ≡ k.
-                let i = if settings.sampling == Sampling::Mis {
-                    j / 2
-                } else {
-                    j
-                };
-                let (k, index) = (i % RANDOMIZATIONS, i / RANDOMIZATIONS);
-                block = k as usize;
-                let v = sobol_point(settings.seed, p as u64, use_is, k, index);
-                ([corner[0] + h * v[0], corner[1] + h * v[1]], [v[2], v[3]])
+            if !inside || denom <= 0.0 {
+                continue;
             }
-        };
-        let dist = xe[0].hypot(xe[1]);
-        let window = sampler.as_ref().map(|s| s.window(dist, radius));
-        let xi = match (&sampler, window, use_is) {
-            (Some(s), Some(w), true) => {
-                // r from the truncated profile, φ uniform on the arc inside the disk.
-                let r = s.sample(u[0], w);
-                let theta = arc_half_angle(dist, r, radius);
-                let phi = (-xe[1]).atan2(-xe[0]) + theta * (2.0 * u[1] - 1.0);
-                [xe[0] + r * phi.cos(), xe[1] + r * phi.sin()]
+            for c in evaluated.clone() {
+                let v = n_s * sv.eval(c, xi, xe, scratch) / denom;
+                g.sum[c] += v;
+                g.sq[c] += v * v;
             }
-            _ => {
-                let d = sample_disk_concentric([u[0], u[1]]);
-                [radius * d[0], radius * d[1]]
-            }
-        };
-        let inside = xi[0] * xi[0] + xi[1] * xi[1] <= radius * radius;
-        let r = ((xe[0] - xi[0]).powi(2) + (xe[1] - xi[1]).powi(2)).sqrt();
-        let pu = if inside { p_uniform } else { 0.0 };
-        let pi = match (&sampler, window) {
-            (Some(s), Some(w)) => s.area_pdf(r, arc_half_angle(dist, r, radius), w),
-            _ => 0.0,
-        };
-        let n_s = if use_is { n_i } else { n_u };
-        let denom = n_u * pu + n_i * pi;
-        let g = match settings.sequence {
-            Sequence::Independent => &mut groups[usize::from(use_is)],
-            Sequence::Sobol => &mut blocks[usize::from(use_is)][block],
-        };
-        g.n += 1.0;
-        if !inside || denom <= 0.0 {
-            continue;
-        }
-        for c in 0..channels {
-            let v = n_s * sv.eval(c, xi, xe, scratch) / denom;
-            g.sum[c] += v;
-            g.sq[c] += v * v;
         }
     }
     (0..channels)
@@ -610,11 +763,12 @@ fn pixel(
             let (mut mean, mut var) = (0.0, 0.0);
             match settings.sequence {
                 Sequence::Independent => {
-                    for g in groups.iter().filter(|g| g.n > 0.0) {
-                        let m = g.sum[c] / g.n;
+                    for g in groups.iter().filter(|g| g.n[c] > 0.0) {
+                        let n = g.n[c];
+                        let m = g.sum[c] / n;
                         mean += m;
-                        if g.n > 1.0 {
-                            var += ((g.sq[c] - g.n * m * m) / (g.n - 1.0)).max(0.0) / g.n;
+                        if n > 1.0 {
+                            var += ((g.sq[c] - n * m * m) / (n - 1.0)).max(0.0) / n;
                         }
                     }
                 }
@@ -636,8 +790,8 @@ fn pixel(
 /// Σ_k(n_k/n)²·s², with s² = Σ_k(m_k − m̄)²/(R − 1) over the R non-empty
 /// blocks (s²/R for equal blocks). (0, 0) without samples.
 fn randomized_mean(blocks: &[Group], c: usize) -> (f64, f64) {
-    let used = || blocks.iter().filter(|b| b.n > 0.0);
-    let (r, n) = used().fold((0.0, 0.0), |(r, n), b| (r + 1.0, n + b.n));
+    let used = || blocks.iter().filter(|b| b.n[c] > 0.0);
+    let (r, n) = used().fold((0.0, 0.0), |(r, n), b| (r + 1.0, n + b.n[c]));
     if n == 0.0 {
         return (0.0, 0.0);
     }
@@ -645,9 +799,12 @@ fn randomized_mean(blocks: &[Group], c: usize) -> (f64, f64) {
     if r < 2.0 {
         return (mean, 0.0);
     }
-    let mbar = used().map(|b| b.sum[c] / b.n).sum::<f64>() / r;
-    let s2 = used().map(|b| (b.sum[c] / b.n - mbar).powi(2)).sum::<f64>() / (r - 1.0);
-    let w2: f64 = used().map(|b| (b.n / n).powi(2)).sum();
+    let mbar = used().map(|b| b.sum[c] / b.n[c]).sum::<f64>() / r;
+    let s2 = used()
+        .map(|b| (b.sum[c] / b.n[c] - mbar).powi(2))
+        .sum::<f64>()
+        / (r - 1.0);
+    let w2: f64 = used().map(|b| (b.n[c] / n).powi(2)).sum();
     (mean, s2 * w2)
 }
 
@@ -978,5 +1135,161 @@ mod tests {
             (p - expect).abs() < 5.0 * se + 1e-3,
             "{p} vs {expect} ± {se}"
         );
+    }
+
+    /// Stripes of albedo 0.2 | 0.95, 0.5 MFP wide, 3 × 3 MFP, under `learned`.
+    fn striped() -> SvBssrdf {
+        let n = 60;
+        let v = (0..n * n)
+            .map(|k| if (k % n / 10) % 2 == 0 { 0.2 } else { 0.95 })
+            .collect();
+        SvBssrdf::new(
+            Method::Learned,
+            Variant::default(),
+            Arc::new(BasisTable::new(&crate::testing::shipped_basis())),
+            Some(Arc::new(crate::testing::shipped_meta())),
+            vec![TexelMap::new(n, n, 0.05, v).unwrap()],
+            Density::Constant(1.0),
+        )
+        .unwrap()
+    }
+
+    /// The guide's angles fall in its bins as often as their weights say,
+    /// the factor it reports for a sample is the one `factor` gives at that
+    /// angle, and its density integrates to 1 over the arc.
+    #[test]
+    fn the_arc_guide_samples_its_density() {
+        let sv = striped();
+        for (xe, r) in [([0.3, 0.1], 0.8), ([0.9, -0.4], 1.2), ([0.0, 0.0], 0.4)] {
+            let dist = f64::hypot(xe[0], xe[1]);
+            let toward = (-xe[1]).atan2(-xe[0]);
+            let theta = arc_half_angle(dist, r, 1.0);
+            let g = ArcGuide::new(&sv, xe, r, toward, theta, Some(0));
+            let total: f64 = (0..g.bins)
+                .map(|b| g.factor(g.start + (b as f64 + 0.5) * g.width) * g.width / (2.0 * theta))
+                .sum();
+            assert!((total - 1.0).abs() < 1e-12, "{xe:?}: ∫ = {total}");
+            // Not uniform: the stripes are on the arc.
+            let (lo, hi) = g.weight[..g.bins]
+                .iter()
+                .fold((f64::MAX, 0.0f64), |(l, h), &w| (l.min(w), h.max(w)));
+            assert!(hi > 2.0 * lo, "{xe:?}: weights {lo}..{hi}");
+            let n = 100_000u64;
+            let mut counts = vec![0u64; g.bins];
+            for k in 0..n {
+                let (phi, f) = g.sample(PathRng::new(11, k).uniform());
+                assert!((g.factor(phi) / f - 1.0).abs() < 1e-12, "{phi}: {f}");
+                let b = (((phi - g.start) / g.width) as usize).min(g.bins - 1);
+                counts[b] += 1;
+            }
+            let expected: Vec<f64> = g.weight[..g.bins]
+                .iter()
+                .map(|w| n as f64 * w / g.cdf[g.bins])
+                .collect();
+            let (chi2, dof) = crate::testing::chi2_statistic(&counts, &expected);
+            assert!(
+                chi2 < crate::testing::chi2_critical(dof, 1e-4),
+                "{xe:?}: χ² {chi2}"
+            );
+        }
+    }
+
+    /// On stripes, φ guided by the albedo changes the noise, not the
+    /// expectation: every strategy agrees with the unguided profile
+    /// sampler to 4σ, and the guided one's standard error is below 0.85 of
+    /// the unguided one's inside, across and outside the light's edge
+    /// (measured: 0.60–0.77).
+    #[test]
+    fn the_albedo_guide_is_unbiased_and_lowers_the_noise_on_stripes() {
+        let sv = striped();
+        let view = View {
+            light_radius: 1.0,
+            irradiance: 1.0,
+            resolution: 5,
+            half_width: 1.25,
+        };
+        let run = |sampling| {
+            let settings = Settings {
+                spp: 4096,
+                sampling,
+                sequence: Sequence::Independent,
+                seed: 5,
+            };
+            render(&sv, &view, &settings)
+        };
+        let profile = run(Sampling::Profile);
+        for sampling in [Sampling::Importance, Sampling::Mis] {
+            let img = run(sampling);
+            for (i, j) in [(2, 2), (2, 3), (0, 4), (1, 1)] {
+                let k = img.index(0, i, j);
+                let (m, e) = (img.mean[k], img.stderr[k]);
+                let (mp, ep) = (profile.mean[k], profile.stderr[k]);
+                assert!(
+                    (m - mp).abs() < 4.0 * e.hypot(ep),
+                    "{sampling:?} ({i},{j}): {m} ± {e} vs {mp} ± {ep}"
+                );
+                if sampling == Sampling::Importance {
+                    assert!(e < 0.85 * ep, "({i},{j}): stderr {e} vs {ep}");
+                }
+            }
+        }
+    }
+
+    /// On an RGB texture (stripes, a checker and their mix), each channel's
+    /// own guided samples agree with the unguided shared ones to 4σ, and
+    /// the guided render is deterministic.
+    #[test]
+    fn per_channel_passes_are_unbiased_on_an_rgb_texture() {
+        let n = 60;
+        let map = |f: &dyn Fn(usize, usize) -> bool| {
+            let v = (0..n * n)
+                .map(|k| if f(k / n, k % n) { 0.2 } else { 0.95 })
+                .collect();
+            TexelMap::new(n, n, 0.05, v).unwrap()
+        };
+        let sv = SvBssrdf::new(
+            Method::Learned,
+            Variant::default(),
+            Arc::new(BasisTable::new(&crate::testing::shipped_basis())),
+            Some(Arc::new(crate::testing::shipped_meta())),
+            vec![
+                map(&|_, j| (j / 10) % 2 == 0),
+                map(&|i, j| (i / 10 + j / 10) % 2 == 0),
+                map(&|i, _| (i / 10) % 2 == 0),
+            ],
+            Density::Constant(1.0),
+        )
+        .unwrap();
+        let view = View {
+            light_radius: 1.0,
+            irradiance: 1.0,
+            resolution: 5,
+            half_width: 1.25,
+        };
+        let run = |sampling, sequence| {
+            let settings = Settings {
+                spp: 2048,
+                sampling,
+                sequence,
+                seed: 9,
+            };
+            render(&sv, &view, &settings)
+        };
+        let profile = run(Sampling::Profile, Sequence::Independent);
+        let guided = run(Sampling::Importance, Sequence::Independent);
+        for c in 0..3 {
+            for (i, j) in [(2, 2), (2, 3), (0, 4)] {
+                let k = guided.index(c, i, j);
+                let (m, e) = (guided.mean[k], guided.stderr[k]);
+                let (mp, ep) = (profile.mean[k], profile.stderr[k]);
+                assert!(e > 0.0 && ep > 0.0);
+                assert!(
+                    (m - mp).abs() < 4.0 * e.hypot(ep),
+                    "channel {c} ({i},{j}): {m} ± {e} vs {mp} ± {ep}"
+                );
+            }
+        }
+        let once = run(Sampling::Importance, Sequence::Sobol);
+        assert_eq!(once, run(Sampling::Importance, Sequence::Sobol));
     }
 }

@@ -928,6 +928,11 @@ impl SvBssrdf {
         self.material.albedo[c].at(x, y)
     }
 
+    /// The albedo map of channel `c`.
+    pub fn albedo_map(&self, c: usize) -> &TexelMap {
+        &self.material.albedo[c]
+    }
+
     /// The density at a point.
     #[inline]
     pub fn density_at(&self, x: f64, y: f64) -> f64 {
