@@ -1183,6 +1183,23 @@ mod tests {
         .unwrap()
     }
 
+    /// `sv` rendered over `view` with these settings.
+    fn rendered(
+        sv: &SvBssrdf,
+        view: &View,
+        (spp, seed): (u32, u64),
+        sampling: Sampling,
+        sequence: Sequence,
+    ) -> Image {
+        let settings = Settings {
+            spp,
+            sampling,
+            sequence,
+            seed,
+        };
+        render(sv, view, &settings)
+    }
+
     /// The guide's angles fall in its bins as often as their weights say,
     /// the factor it reports for a sample is the one `factor` gives at that
     /// angle, and its density integrates to 1 over the arc.
@@ -1237,15 +1254,7 @@ mod tests {
             resolution: 5,
             half_width: 1.25,
         };
-        let run = |sampling| {
-            let settings = Settings {
-                spp: 4096,
-                sampling,
-                sequence: Sequence::Independent,
-                seed: 5,
-            };
-            render(&sv, &view, &settings)
-        };
+        let run = |sampling| rendered(&sv, &view, (4096, 5), sampling, Sequence::Independent);
         let profile = run(Sampling::Profile);
         for sampling in [Sampling::Importance, Sampling::Mis] {
             let img = run(sampling);
@@ -1295,15 +1304,7 @@ mod tests {
             resolution: 5,
             half_width: 1.25,
         };
-        let run = |sampling, sequence| {
-            let settings = Settings {
-                spp: 2048,
-                sampling,
-                sequence,
-                seed: 9,
-            };
-            render(&sv, &view, &settings)
-        };
+        let run = |sampling, sequence| rendered(&sv, &view, (2048, 9), sampling, sequence);
         let profile = run(Sampling::Profile, Sequence::Independent);
         let guided = run(Sampling::Importance, Sequence::Independent);
         for c in 0..3 {
@@ -1338,15 +1339,7 @@ mod tests {
         .unwrap();
         assert!(!albedo_varies(&sv));
         let (view, _, _) = sobol_case(&sv);
-        let run = |sampling| {
-            let settings = Settings {
-                spp: 64,
-                sampling,
-                sequence: Sequence::Sobol,
-                seed: 2,
-            };
-            render(&sv, &view, &settings)
-        };
+        let run = |sampling| rendered(&sv, &view, (64, 2), sampling, Sequence::Sobol);
         assert_eq!(run(Sampling::Importance), run(Sampling::Profile));
         assert!(albedo_varies(&striped()));
     }
