@@ -501,7 +501,8 @@ impl RadialSampler {
     }
 }
 
-/// The most angular bins of the albedo guide on an arc ([`ArcGuide`]).
+/// The most angular bins of the albedo guide on an arc (module docs,
+/// `importance`).
 pub const ARC_BINS: usize = 32;
 
 /// The albedo guide is used only where some channel's albedo varies over
