@@ -559,13 +559,16 @@ impl ArcGuide {
         channel: Option<usize>,
     ) -> Self {
         let start = toward - theta;
+        let channel = channel.filter(|_| theta > 0.0 && r > 0.0);
+        let bins = channel.map_or(1, |c| {
+            let arc = 2.0 * theta * r / sv.albedo_map(c).texel;
+            (arc.ceil() as usize).clamp(2, ARC_BINS)
+        });
+        let width = 2.0 * theta / bins as f64;
         let mut weight = [1.0; ARC_BINS];
-        let mut bins = 1;
-        if let Some(c) = channel.filter(|_| theta > 0.0 && r > 0.0) {
+        if let Some(c) = channel {
             let map = sv.albedo_map(c);
             let inv = 1.0 / map.texel;
-            bins = ((2.0 * theta * r * inv).ceil() as usize).clamp(2, ARC_BINS);
-            let width = 2.0 * theta / bins as f64;
             // In texel units (column from −x, row from +y, as TexelMap::at):
             // the centre x_e, then the bin centres by rotation, one complex
             // product per bin.
@@ -591,7 +594,7 @@ impl ArcGuide {
         }
         ArcGuide {
             start,
-            width: 2.0 * theta / bins as f64,
+            width,
             bins,
             weight,
             cdf,
@@ -700,7 +703,6 @@ fn pixel(
     // Every pass draws the pixel's numbers: a channel's samples differ from
     // another's only by their guides, so a grey map renders the same in one
     // channel or three.
-    let key = p as u64;
     for j in 0..spp {
         let mut block = 0;
         let use_is = match settings.sampling {
@@ -710,7 +712,7 @@ fn pixel(
         };
         let (xe, u) = match settings.sequence {
             Sequence::Independent => {
-                let mut rng = PathRng::new(settings.seed, key * spp + j);
+                let mut rng = PathRng::new(settings.seed, p as u64 * spp + j);
                 let xe = [corner[0] + h * rng.uniform(), corner[1] + h * rng.uniform()];
                 (xe, [rng.uniform(), rng.uniform()])
             }
@@ -723,7 +725,7 @@ fn pixel(
                 };
                 let (k, index) = (i % RANDOMIZATIONS, i / RANDOMIZATIONS);
                 block = k as usize;
-                let v = sobol_point(settings.seed, key, use_is, k, index);
+                let v = sobol_point(settings.seed, p as u64, use_is, k, index);
                 ([corner[0] + h * v[0], corner[1] + h * v[1]], [v[2], v[3]])
             }
         };
