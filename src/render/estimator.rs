@@ -224,13 +224,13 @@ pub struct Settings {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum Sequence {
-    /// Independent uniform numbers: sample j of pixel p from
-    /// [`PathRng`]`(seed, p·spp + j)`.
+    /// Independent uniform numbers: sample j of pixel p from the
+    /// counter-based stream (seed, p·spp + j).
     Independent,
-    /// Randomised quasi-Monte Carlo: per pixel and strategy,
-    /// [`RANDOMIZATIONS`] independently Owen-scrambled Sobol' sequences
-    /// (Burley 2020, the `sobol_burley` crate) of 4 dimensions (x_e in the
-    /// pixel, then x_i).
+    /// Randomised quasi-Monte Carlo: per pixel and strategy, 4
+    /// independently Owen-scrambled Sobol' sequences (Burley 2020, the
+    /// `sobol_burley` crate) of 4 dimensions (x_e in the pixel, then x_i);
+    /// the spread of their means gives the standard error.
     #[default]
     Sobol,
 }
