@@ -47,11 +47,12 @@ fn main() -> svkernel::Result<()> {
         Some(f) => MetaModelFile::load(Path::new(&f))?,
         None => (*models.meta).clone(),
     };
-    let space = match opt("--space").as_deref().unwrap_or("transport") {
-        "linear" => AlbedoSpace::Linear,
-        "log" => AlbedoSpace::Log,
-        "absorption" => AlbedoSpace::Absorption,
-        _ => AlbedoSpace::Transport,
+    let space = match opt("--space") {
+        Some(s) => <AlbedoSpace as clap::ValueEnum>::from_str(&s, true).unwrap_or_else(|_| {
+            eprintln!("--space {s}: expected transport, linear, log or absorption");
+            std::process::exit(2);
+        }),
+        None => AlbedoSpace::Transport,
     };
     let blur: f64 = opt("--blur").map_or(0.25, |b| b.parse().expect("a number"));
     let [rings, angles] = pair(&opt("--quadrature").unwrap_or("12,2".into()));

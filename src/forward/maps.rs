@@ -57,6 +57,15 @@ impl TexelMap {
         (clamp_index(i, self.ny), clamp_index(j, self.nx))
     }
 
+    /// The index into `values` of the texel at texel coordinates (u, v):
+    /// u texels right of the left edge, v texels down from the top edge,
+    /// clamped to the edge ([`Self::texel_of`] with x, y scaled by 1/τ and
+    /// shifted to the corner).
+    #[inline]
+    pub fn index_at_texel(&self, u: f64, v: f64) -> usize {
+        clamp_index(v.floor(), self.ny) * self.nx + clamp_index(u.floor(), self.nx)
+    }
+
     /// The value at (x, y).
     #[inline]
     pub fn at(&self, x: f64, y: f64) -> f64 {

@@ -593,13 +593,11 @@ impl ArcGuide {
             // In texel units (column from −x, row from +y, as TexelMap::at):
             // the centre x_e, then the bin centres by rotation, one complex
             // product per bin.
-            let (nx, ny) = (map.nx as i64, map.ny as i64);
-            let (cu, cv) = (xe[0] * inv + 0.5 * nx as f64, 0.5 * ny as f64 - xe[1] * inv);
-            let texel = |du: f64, dv: f64| {
-                let j = ((cu + du).floor() as i64).clamp(0, nx - 1);
-                let i = ((cv - dv).floor() as i64).clamp(0, ny - 1);
-                (i * nx + j) as usize
-            };
+            let (cu, cv) = (
+                xe[0] * inv + 0.5 * map.nx as f64,
+                0.5 * map.ny as f64 - xe[1] * inv,
+            );
+            let texel = |du: f64, dv: f64| map.index_at_texel(cu + du, cv - dv);
             let (s0, c0) = (start + 0.5 * width).sin_cos();
             let (sd, cd) = width.sin_cos();
             let (mut du, mut dv) = (r * inv * c0, r * inv * s0);
@@ -659,6 +657,10 @@ impl ArcGuide {
     fn sample(&self, u: f64) -> (f64, f64) {
         let n = self.bins;
         let total = self.cdf[n];
+        if total <= 0.0 {
+            // An arc of no length (θ = 0): its one point.
+            return (self.bounds[0], 1.0);
+        }
         let target = u * total;
         let b = self.cdf[1..n].iter().take_while(|&&c| c <= target).count();
         let within = ((target - self.cdf[b]) / (self.cdf[b + 1] - self.cdf[b])).clamp(0.0, 1.0);
