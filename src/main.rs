@@ -6,6 +6,7 @@ use clap::{Args, Parser, Subcommand};
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::time::Duration;
+use svkernel::fit::meta::Components;
 use svkernel::forward::kernel::{self, KernelConfig, KernelDoc, PairGrid};
 use svkernel::forward::medium::{Medium, Source};
 use svkernel::forward::profile::{self, DEFAULT_MAX_EVENTS, Engine, ProfileConfig, ProfileDoc};
@@ -643,9 +644,11 @@ enum Fit {
         /// Directory for report.json (default: OUT's directory/metamodel_report)
         #[arg(long)]
         report: Option<PathBuf>,
-        /// Gaussian components K.
-        #[arg(long, default_value_t = 3, value_parser = RangedU64ValueParser::<usize>::new().range(1..=5))]
-        components: usize,
+        /// Gaussian components K of the all-vertex and of the last-vertex
+        /// kernels, e.g. 3,4 (one number: the same K for both).
+        #[arg(long, value_delimiter = ',', default_value = "3,4",
+              value_parser = RangedU64ValueParser::<usize>::new().range(1..=5))]
+        components: Vec<usize>,
         /// Polynomial degrees in ln d and sqrt(1 − α), e.g. 3,3.
         #[arg(long, value_delimiter = ',', default_value = "3,3")]
         degree: Vec<usize>,
@@ -792,6 +795,11 @@ struct KernelArgs {
     nv: usize,
     #[arg(long, default_value_t = PairGrid::default().extent)]
     extent: f64,
+    /// The first- and last-vertex histograms have this many times as many
+    /// bins along each axis (one vertex's core is narrower than a bin of
+    /// the all-vertex grid).
+    #[arg(long, default_value_t = PairGrid::default().vertex_refine)]
+    vertex_refine: usize,
     /// Plan the simulation so that every cell gets at least this many
     /// effective contributing paths: pilot walks choose per cell a flight
     /// stretch and a path count (then `--paths` is the most paths of one run).
@@ -891,6 +899,7 @@ fn simulate_kernels(a: KernelArgs) -> Result<()> {
             nu: a.nu,
             nv: a.nv,
             extent: a.extent,
+            vertex_refine: a.vertex_refine,
         },
         runs: Vec::new(),
     };
@@ -1300,6 +1309,11 @@ fn fit(f: Fit) -> Result<()> {
             degree,
         } => {
             use svkernel::jobs::fit_kernels;
+            let components = match components[..] {
+                [k] => Components::from(k),
+                [all, last] => Components { all, last },
+                _ => bail!("invalid --components: give K or K_ALL,K_LAST, e.g. 3,4"),
+            };
             let [dx, dy] = degree[..] else {
                 bail!("invalid --degree: give two degrees, e.g. 3,3");
             };

@@ -276,7 +276,7 @@ fn first_vertex_lies_below_the_entry_point() {
         h.mean_v2
     );
     assert!((h.mass.iter().sum::<f64>() + h.overflow - 1.0).abs() < 1e-12);
-    let g = c.grid;
+    let g = c.grid.for_class(VertexClass::First);
     let iu = ((u0 + g.extent) / (2.0 * g.extent) * g.nu as f64) as usize;
     assert!((h.mass[iu * g.nv] - 1.0).abs() < 1e-12);
     // The last vertex is spread around x_e, the all-vertex kernel in between.

@@ -739,16 +739,44 @@ pub struct MetaModelFit {
     pub aggregation: Vec<AggregationRow>,
 }
 
+/// Gaussian components of the meta-model, per vertex class. The shipped
+/// model has 3 for all vertices and 4 for the last one, whose core around
+/// x_e and tail toward x_i three isotropic Gaussians do not both hold
+/// (docs/method.md §4).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Components {
+    pub all: usize,
+    pub last: usize,
+}
+
+impl Components {
+    fn of(self, class: VertexClass) -> usize {
+        match class {
+            VertexClass::All => self.all,
+            VertexClass::First | VertexClass::Last => self.last,
+        }
+    }
+}
+
+/// The same K for both classes.
+impl From<usize> for Components {
+    fn from(k: usize) -> Self {
+        Components { all: k, last: k }
+    }
+}
+
 /// Fits the meta-model of the all-vertex and the last-vertex kernels with
-/// `k` components and polynomial degrees `degree` (in ln d, in √(1 − α)) to
-/// a kernel tally at unit density, and measures every cell's aggregation
-/// error. Pure: the caller writes the model and the report.
+/// `k` components (one K for both, or [`Components`]) and polynomial
+/// degrees `degree` (in ln d, in √(1 − α)) to a kernel tally at unit
+/// density, and measures every cell's aggregation error. Pure: the caller
+/// writes the model and the report.
 pub fn fit_metamodel(
     doc: &KernelDoc,
-    k: usize,
+    k: impl Into<Components>,
     degree: (usize, usize),
     progress: bool,
 ) -> crate::Result<(MetaModelFile, MetaModelFit)> {
+    let k = k.into();
     let task = crate::progress::Task::open(
         progress,
         "fitting the meta-model (all and last vertices)",
@@ -765,7 +793,8 @@ pub fn fit_metamodel(
             VertexClass::Last => &[Labelling::Centre, Labelling::Width],
             _ => &[Labelling::Centre],
         };
-        fit_meta_with(&cs, k, degree, labellings, &what, Some(&task)).map(|r| (class, cs, r))
+        fit_meta_with(&cs, k.of(class), degree, labellings, &what, Some(&task))
+            .map(|r| (class, cs, r))
     };
     let (a, l) = rayon::join(
         || fit_class(VertexClass::All),

@@ -68,6 +68,26 @@ pub struct PairGrid {
     /// Bins across, over v = |s|/λ ∈ [0, extent).
     pub nv: usize,
     pub extent: f64,
+    /// The first- and last-vertex histograms have `vertex_refine` times as
+    /// many bins along each axis as the all-vertex one
+    /// ([`PairGrid::for_class`]). One vertex lies in a core of σ ≈ 0.1 MFP
+    /// around its end of the pair, narrower than the default bin of λ/4
+    /// (≥ 0.26 MFP): on bins of λ/8 the fit sees that core (docs/method.md
+    /// §3, "Grids"). The
+    /// all-vertex density is smooth on the coarse grid, and there its fit
+    /// keeps the tails that aggregation needs. 1 (no refinement) is not
+    /// written, so documents and content hashes from before the refinement
+    /// existed read and hash as they did.
+    #[serde(default = "one", skip_serializing_if = "is_one")]
+    pub vertex_refine: usize,
+}
+
+fn one() -> usize {
+    1
+}
+
+fn is_one(n: &usize) -> bool {
+    *n == 1
 }
 
 impl Default for PairGrid {
@@ -76,11 +96,29 @@ impl Default for PairGrid {
             nu: 32,
             nv: 16,
             extent: 4.0,
+            vertex_refine: 2,
         }
     }
 }
 
 impl PairGrid {
+    /// The grid of one vertex class's histogram: this one for all vertices,
+    /// `vertex_refine` times finer for the first and the last.
+    pub fn for_class(&self, class: VertexClass) -> PairGrid {
+        match class {
+            VertexClass::All => PairGrid {
+                vertex_refine: 1,
+                ..*self
+            },
+            VertexClass::First | VertexClass::Last => PairGrid {
+                nu: self.nu * self.vertex_refine,
+                nv: self.nv * self.vertex_refine,
+                extent: self.extent,
+                vertex_refine: 1,
+            },
+        }
+    }
+
     /// Bins, without the overflow bin (which has index `bins()`).
     pub fn bins(&self) -> usize {
         self.nu * self.nv
@@ -142,6 +180,7 @@ pub struct ClassTally {
 }
 
 impl ClassTally {
+    /// An empty tally on `grid` (the class's own, [`PairGrid::for_class`]).
     fn new(grid: &PairGrid) -> Self {
         ClassTally {
             count: vec![0; grid.bins() + 1],
@@ -226,7 +265,7 @@ impl CellTally {
             weight_sq: 0,
             events: 0,
             events_sq: 0,
-            classes: std::array::from_fn(|_| ClassTally::new(grid)),
+            classes: VertexClass::ALL.map(|class| ClassTally::new(&grid.for_class(class))),
         }
     }
 
@@ -270,9 +309,10 @@ impl CellTally {
             ((t - 0.5 * d) / lambda, s.abs() / lambda)
         };
         bins.clear();
+        let all = grid.for_class(VertexClass::All);
         for p in vertices {
             let (u, v) = frame(*p);
-            bins.push(grid.index(u, v));
+            bins.push(all.index(u, v));
             self.classes[VertexClass::All.slot()].add_moment(u, v, w);
         }
         bins.sort_unstable();
@@ -283,7 +323,7 @@ impl CellTally {
         ] {
             let (u, v) = frame(p);
             let c = &mut self.classes[class.slot()];
-            c.add_path(&[grid.index(u, v)], w);
+            c.add_path(&[grid.for_class(class).index(u, v)], w);
             c.add_moment(u, v, w);
         }
     }
@@ -309,6 +349,7 @@ impl CellTally {
         d: f64,
         lambda: f64,
     ) -> NormalizedHistogram {
+        let grid = &grid.for_class(class);
         let cl = &self.classes[class.slot()];
         // Σw, Σw·n_c, Σw²·n_c² (Σw² for first and last, n_c = 1).
         let n = (self.weight as f64).max(f64::MIN_POSITIVE);
@@ -719,18 +760,20 @@ impl KernelConfig {
         if !self.runs.is_empty() {
             self.validate_runs()?;
         }
-        if self.grid.nu == 0
-            || self.grid.nv == 0
-            || self.grid.extent.is_nan()
-            || self.grid.extent <= 0.0
+        let g = &self.grid;
+        if g.nu == 0
+            || g.nv == 0
+            || g.extent.is_nan()
+            || g.extent <= 0.0
+            || !(1..=8).contains(&g.vertex_refine)
         {
             return Err(Error::param(
                 "grid",
                 format!(
-                    "nu {}, nv {}, extent {}",
-                    self.grid.nu, self.grid.nv, self.grid.extent
+                    "nu {}, nv {}, extent {}, vertex_refine {}",
+                    g.nu, g.nv, g.extent, g.vertex_refine
                 ),
-                "nu, nv >= 1, extent > 0",
+                "nu, nv >= 1, extent > 0, vertex_refine in 1..=8",
             ));
         }
         Ok(())
@@ -1262,14 +1305,15 @@ impl crate::doc::Document for KernelDoc {
     fn validate(&self, path: &std::path::Path) -> crate::Result<()> {
         let doc = self;
         let c = &doc.config;
-        let bins = c.grid.bins() + 1;
+        let bins = VertexClass::ALL.map(|class| c.grid.for_class(class).bins() + 1);
         let shape_ok = doc.tally.cells.len() == c.albedos.len()
             && doc.tally.cells.iter().all(|row| {
                 row.len() == c.distances.len()
                     && row.iter().all(|cell| {
                         cell.classes
                             .iter()
-                            .all(|k| [&k.count, &k.sq, &k.cross].iter().all(|v| v.len() == bins))
+                            .zip(bins)
+                            .all(|(k, n)| [&k.count, &k.sq, &k.cross].iter().all(|v| v.len() == n))
                     })
             });
         if !shape_ok {
@@ -1506,8 +1550,39 @@ mod tests {
         c.add_path(&grid, [1.0, 0.0], 1.0, &[[0.5, 1.5]], 3, &mut scratch);
         assert!((c.effective_paths() - 1.6).abs() < 1e-12);
         let h = c.normalized(&grid, VertexClass::First, 0.5, 1.0, 1.0);
-        assert!((h.mass[grid.index(0.0, 1.5)] - 0.75).abs() < 1e-12);
-        assert!((h.mass[grid.index(0.0, 0.0)] - 0.25).abs() < 1e-12);
+        let first = grid.for_class(VertexClass::First);
+        assert!((h.mass[first.index(0.0, 1.5)] - 0.75).abs() < 1e-12);
+        assert!((h.mass[first.index(0.0, 0.0)] - 0.25).abs() < 1e-12);
+    }
+
+    #[test]
+    fn vertex_classes_are_binned_on_their_own_grid() {
+        // Two vertices 0.15 λ apart across the axis share a bin of λ/4 in
+        // the all-vertex histogram and fall in two bins of λ/8 in the
+        // last-vertex one.
+        let grid = PairGrid::default();
+        assert_eq!(grid.vertex_refine, 2);
+        let mut c = CellTally::new(&grid);
+        let mut scratch = Vec::new();
+        for s in [0.05, 0.2] {
+            c.add_path(&grid, [1.0, 0.0], 1.0, &[[0.5, s]], 1, &mut scratch);
+        }
+        let all = c.normalized(&grid, VertexClass::All, 0.5, 1.0, 1.0);
+        let last = c.normalized(&grid, VertexClass::Last, 0.5, 1.0, 1.0);
+        assert_eq!((all.mass.len(), last.mass.len()), (32 * 16, 64 * 32));
+        assert_eq!(all.v_edges[1], 0.25);
+        assert_eq!(last.v_edges[1], 0.125);
+        assert_eq!(all.mass[grid.index(0.0, 0.05)], 1.0);
+        let fine = grid.for_class(VertexClass::Last);
+        assert_eq!(last.mass[fine.index(0.0, 0.05)], 0.5);
+        assert_eq!(last.mass[fine.index(0.0, 0.2)], 0.5);
+        // A grid written before the refinement existed reads as unrefined.
+        let old: PairGrid = serde_json::from_str(r#"{"nu": 32, "nv": 16, "extent": 4.0}"#).unwrap();
+        assert_eq!(old.vertex_refine, 1);
+        assert_eq!(
+            old.for_class(VertexClass::Last),
+            old.for_class(VertexClass::All)
+        );
     }
 
     #[test]
@@ -1516,8 +1591,8 @@ mod tests {
         // there is exactly 1 whatever the path lengths. (Treating Σn as
         // exact gave σ = √½/2 = 0.35.)
         let (grid, c) = cell(&[vec![[0.5, 0.0]], vec![[0.5, 0.0]; 3]]);
-        let b = grid.index(0.0, 0.0);
         for class in [VertexClass::All, VertexClass::First, VertexClass::Last] {
+            let b = grid.for_class(class).index(0.0, 0.0);
             let h = c.normalized(&grid, class, 0.5, 1.0, 1.0);
             assert_eq!(h.mass[b], 1.0, "{class:?}");
             assert!(h.sigma[b] < 1e-12, "{class:?}: {}", h.sigma[b]);

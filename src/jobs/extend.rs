@@ -173,7 +173,15 @@ pub fn ensure(
         let chunks = vec![(0, config.chunks())];
         let doc = KernelDoc::new(config, None, chunks, tally, wall_s, Provenance::current());
         let degree = (meta.all.deg_x, meta.all.deg_y.min(EXTENSION_ALBEDOS - 2));
-        let (file, _) = crate::fit::meta::fit_metamodel(&doc, meta.all.k, degree, progress)?;
+        let (file, _) = crate::fit::meta::fit_metamodel(
+            &doc,
+            crate::fit::meta::Components {
+                all: meta.all.k,
+                last: meta.last.k,
+            },
+            degree,
+            progress,
+        )?;
         crate::jobs::store::write_json_compact_atomic(&kernels, &doc)?;
         crate::jobs::store::write_json_atomic(&model, &file)?;
         file

@@ -7,7 +7,7 @@ use crate::error::{Error, Result};
 use crate::fit::aggregation::{AggregationRow, aggregation_row};
 use crate::fit::gmm::histogram_of;
 use crate::fit::lm::FitReport;
-use crate::fit::meta::{Cell, fit_metamodel};
+use crate::fit::meta::{Cell, Components, fit_metamodel};
 use crate::forward::kernel::{KernelDoc, VertexClass};
 use crate::metamodel::kernel::{Gmm, manual_kernel};
 use crate::metamodel::meta::MetaModelFile;
@@ -20,7 +20,7 @@ use std::time::Instant;
 pub struct KernelReport {
     pub model_file: String,
     pub data_file: String,
-    pub components: usize,
+    pub components: Components,
     pub degree: (usize, usize),
     pub joint: Vec<FitReport>,
     /// Per-cell fit reports (or the error) per class.
@@ -35,7 +35,7 @@ pub fn fit_kernels(
     data: &Path,
     out: &Path,
     dir: &Path,
-    k: usize,
+    k: Components,
     degree: (usize, usize),
     progress: bool,
 ) -> Result<KernelReport> {

@@ -33,7 +33,7 @@ use crate::error::{Error, Result};
 use crate::fit::aggregation::AggregationRow;
 use crate::fit::basis::fit_basis;
 use crate::fit::lm::{FitOptions, FitReport};
-use crate::forward::kernel::{KernelConfig, KernelDoc};
+use crate::forward::kernel::{KernelConfig, KernelDoc, PairGrid};
 use crate::forward::medium::{Medium, Observable, Source};
 use crate::forward::profile::{DEFAULT_MAX_EVENTS, Engine, ProfileConfig, ProfileDoc};
 use crate::forward::runner::{RunOptions, Shard, chunk_range};
@@ -141,6 +141,13 @@ impl BuildConfig {
                 g,
                 paths: 10_000_000,
                 seed: 6000,
+                // The presets were built on one grid for every vertex
+                // class; a build on the refined last-vertex grid of the
+                // default medium's model has not been measured.
+                grid: PairGrid {
+                    vertex_refine: 1,
+                    ..crate::jobs::shipped::training_config().grid
+                },
                 ..crate::jobs::shipped::training_config()
             },
             meta_components: 4,

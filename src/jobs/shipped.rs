@@ -113,6 +113,7 @@ pub fn training_config() -> KernelConfig {
             nu: 32,
             nv: 16,
             extent: 4.0,
+            vertex_refine: 2,
         },
         runs: Vec::new(),
     }
