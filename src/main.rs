@@ -124,6 +124,10 @@ enum Command {
         sequence: Sequence,
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        /// `learned` with α_t under the interior vertices' kernel (as
+        /// `render --interior`).
+        #[arg(long)]
+        interior: bool,
         #[command(flatten)]
         models: ModelArgs,
         #[arg(long, default_value = "out/compare")]
@@ -335,6 +339,10 @@ struct DesignArgs {
     /// coarse albedo variation for --albedo-space, as in `render`.
     #[arg(long, default_value_t = SPACE_BLUR)]
     space_blur: f64,
+    /// Forward model learned: α_t under the interior vertices' kernel, as
+    /// `render --interior`.
+    #[arg(long)]
+    interior: bool,
     /// Validate by brute force with this many reference paths per map (e.g.
     /// 5e7): the naive map and the maps designed with learned, factorized
     /// and point, against the target.
@@ -369,6 +377,7 @@ fn design(a: DesignArgs) -> Result<()> {
         },
         albedo_space: a.albedo_space,
         space_blur: a.space_blur,
+        interior_kernel: a.interior,
     };
     let opts = DesignOptions {
         target: a.target,
@@ -551,6 +560,12 @@ struct RenderArgs {
     /// Kernel-method variant: a second pass with α₀ = α_t.
     #[arg(long)]
     two_pass: bool,
+    /// Kernel-method variant (learned): α_t under the interior vertices'
+    /// kernel, without the first and last vertices that the local terms
+    /// already count. Better on translucent materials, worse on strong
+    /// contrast (docs/method.md §4).
+    #[arg(long)]
+    interior: bool,
     /// Kernel-method variant: the space in which α_t averages albedo
     /// variation coarser than --space-blur (linear: α; transport: √(1 − α);
     /// log: ln α; absorption: ln(1 − α)); finer variation is averaged linearly.
@@ -1508,6 +1523,7 @@ struct CompareArgs {
     sampling: Sampling,
     sequence: Sequence,
     seed: u64,
+    interior: bool,
     models: ModelArgs,
     out: PathBuf,
 }
@@ -1516,6 +1532,7 @@ struct CompareArgs {
 fn compare(a: CompareArgs) -> Result<()> {
     use svkernel::jobs::compare::{CompareSettings, compare_scene};
     use svkernel::jobs::render::RenderOptions;
+    use svkernel::render::svbssrdf::Variant;
     let scene = svkernel::render::scene::Scene::find(&a.scene)?;
     let opts = RenderOptions {
         sampling: a.sampling,
@@ -1524,6 +1541,10 @@ fn compare(a: CompareArgs) -> Result<()> {
         spp: a.spp,
         reference_paths: a.paths,
         analysis: a.analysis,
+        variant: Variant {
+            interior: a.interior,
+            ..Variant::default()
+        },
         run: RunOptions {
             progress: true,
             ..Default::default()
@@ -1621,6 +1642,7 @@ fn render(a: RenderArgs) -> Result<()> {
             plain: a.plain,
             vertex_kernels: !a.point_albedos,
             two_pass: a.two_pass,
+            interior: a.interior,
             space: a.albedo_space,
             space_blur: a.space_blur,
             density_law: a.density_law,
@@ -1745,6 +1767,7 @@ fn main() -> std::process::ExitCode {
             sampling,
             sequence,
             seed,
+            interior,
             models,
             out,
         } => compare(CompareArgs {
@@ -1756,6 +1779,7 @@ fn main() -> std::process::ExitCode {
             sampling,
             sequence,
             seed,
+            interior,
             models,
             out,
         }),

@@ -437,6 +437,7 @@ fn hard_cases_give_finite_images() {
                 plain: on,
                 vertex_kernels: on,
                 two_pass: on,
+                interior: on,
                 space: if on {
                     AlbedoSpace::Absorption
                 } else {

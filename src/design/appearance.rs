@@ -46,7 +46,7 @@ use super::stack::BlurStack;
 use crate::error::{Error, Result};
 use crate::forward::maps::TexelMap;
 use crate::metamodel::basis::BasisModel;
-use crate::metamodel::kernel::Gmm;
+use crate::metamodel::kernel::{Gmm, interior_into};
 use crate::metamodel::meta::MetaModelFile;
 use crate::render::pyramid;
 use crate::render::svbssrdf::{AlbedoSpace, BasisTable, Method, R_MIN, SPACE_BLUR};
@@ -158,7 +158,12 @@ impl Plans {
 /// The kernel shapes per (offset, anchor bin), as planned reads.
 #[derive(Debug)]
 struct Kernels {
+    /// α_t's kernel: the all-vertex one, or the interior vertices' one
+    /// ([`Appearance::with_interior_kernel`]).
     all: Plans,
+    /// The all-vertex kernel for the anchor's first pass where `all` is the
+    /// interior one.
+    first_pass: Option<Plans>,
     last: Plans,
     first: Option<Plans>,
     y_range: [f64; 2],
@@ -290,7 +295,7 @@ impl Appearance {
         let norm = Normalisation::new(basis, &table, &offsets, single_scale);
         let (kernels, grid) = match (method, meta) {
             (Method::Learned, Some(meta)) => {
-                let (kernels, grid) = tabulate(meta, &offsets, nx, ny, texel);
+                let (kernels, grid) = tabulate(meta, &offsets, nx, ny, texel, None);
                 (Some(kernels), Some(grid))
             }
             (Method::Learned, None) => {
@@ -327,6 +332,33 @@ impl Appearance {
         self.space = space;
         self.space_blur = blur;
         Ok(self)
+    }
+
+    /// The same model (learned) with α_t under the interior vertices'
+    /// kernel, the renderer's `interior` variant
+    /// ([`crate::render::svbssrdf::Variant::interior`]): `meta` must be the
+    /// meta-model this model was built with. Other methods are unchanged.
+    pub fn with_interior_kernel(mut self, meta: &MetaModelFile) -> Self {
+        if self.kernels.is_some() {
+            let (kernels, grid) = tabulate(
+                meta,
+                &self.offsets,
+                self.nx,
+                self.ny,
+                self.texel,
+                Some(&self.basis),
+            );
+            self.kernels = Some(kernels);
+            self.grid = Some(grid);
+        }
+        self
+    }
+
+    /// Whether α_t is taken under the interior vertices' kernel.
+    pub fn interior_kernel(&self) -> bool {
+        self.kernels
+            .as_ref()
+            .is_some_and(|k| k.first_pass.is_some())
     }
 
     /// The space of α_t's coarse part and its scale b (MFP).
@@ -445,7 +477,8 @@ impl Appearance {
                 self.offsets.iter().enumerate().map(move |(o, off)| {
                     let xi = [xe[0] + off.delta[0], xe[1] + off.delta[1]];
                     let b0 = k.bin(0.5 * (a[self.texel_of(xi)] + a[e]));
-                    let t = self.total(stack, xe, k.all.get(o, b0)).0;
+                    let plain = k.first_pass.as_ref().unwrap_or(&k.all);
+                    let t = self.total(stack, xe, plain.get(o, b0)).0;
                     [b0, k.bin(t)]
                 })
             })
@@ -943,6 +976,7 @@ fn tabulate(
     nx: usize,
     ny: usize,
     texel: f64,
+    interior: Option<&BasisTable>,
 ) -> (Kernels, BlurStack) {
     let [a0, a1] = meta.all.alpha_range;
     let y_range = [(1.0 - a1).sqrt(), (1.0 - a0).sqrt()];
@@ -991,8 +1025,24 @@ fn tabulate(
         }
         p
     };
+    // The interior kernel at each bin's α, from the kernels there and n̄ − 2
+    // of the homogeneous profile at (d, α) (the renderer's, with its
+    // all-vertex α_t as this bin's α).
+    let interior = interior.map(|table| {
+        let mut out = Gmm::default();
+        (0..all.len())
+            .map(|i| {
+                let (d, alpha) = (offsets[i / ANCHOR_BINS].d, alpha_of(i % ANCHOR_BINS));
+                let m = table.interior_vertices(d.max(R_MIN), alpha);
+                let f = first.as_ref().map(|f| &f[i]);
+                interior_into(&all[i], f, Some(&last[i]), d, m, &mut out);
+                out.clone()
+            })
+            .collect::<Vec<_>>()
+    });
     let kernels = Kernels {
-        all: plan(&all),
+        all: plan(interior.as_deref().unwrap_or(&all)),
+        first_pass: interior.is_some().then(|| plan(&all)),
         last: plan(&last),
         first: first.as_deref().map(plan),
         y_range,
@@ -1036,25 +1086,29 @@ mod tests {
     #[test]
     fn gradients_match_central_differences() {
         let default = (AlbedoSpace::default(), SPACE_BLUR);
-        for (method, light, (space, blur)) in [
-            (Method::Point, Illumination::Uniform, default),
-            (Method::Factorized, Illumination::Uniform, default),
-            (Method::Learned, Illumination::Uniform, default),
-            (Method::Learned, Illumination::Disk(0.6), default),
+        for (method, light, (space, blur), interior) in [
+            (Method::Point, Illumination::Uniform, default, false),
+            (Method::Factorized, Illumination::Uniform, default, false),
+            (Method::Learned, Illumination::Uniform, default, false),
+            (Method::Learned, Illumination::Disk(0.6), default, false),
+            (Method::Learned, Illumination::Uniform, default, true),
             (
                 Method::Learned,
                 Illumination::Uniform,
                 (AlbedoSpace::Linear, 0.0),
+                false,
             ),
             (
                 Method::Learned,
                 Illumination::Uniform,
                 (AlbedoSpace::Log, 0.0),
+                false,
             ),
             (
                 Method::Learned,
                 Illumination::Uniform,
                 (AlbedoSpace::Absorption, 0.5),
+                true,
             ),
         ] {
             let (nx, ny) = (9, 7);
@@ -1062,9 +1116,13 @@ mod tests {
                 rings: 6,
                 angles: 3,
             };
-            let m = model(method, nx, ny, light, &q)
+            let mut m = model(method, nx, ny, light, &q)
                 .with_albedo_space(space, blur)
                 .unwrap();
+            if interior {
+                m = m.with_interior_kernel(&crate::testing::shipped_meta());
+                assert!(m.interior_kernel());
+            }
             let alpha = noise(nx * ny, 3);
             let anchor = m.anchor(&alpha);
             let g = noise(nx * ny, 4)
@@ -1109,9 +1167,23 @@ mod tests {
         // The normalised quadrature integrates the homogeneous profile:
         // M = R_d(α) at every albedo, inside the offsets' range (drawn for
         // [0.3, 0.95]) or not (without the normalisation: 4 % low at 0.99).
+        // The interior kernel has unit mass, so it aggregates a constant
+        // map to that constant too.
         let basis = crate::testing::shipped_basis();
-        for method in [Method::Point, Method::Factorized, Method::Learned] {
-            let m = model(method, 5, 5, Illumination::Uniform, &Quadrature::default());
+        let interior = model(
+            Method::Learned,
+            5,
+            5,
+            Illumination::Uniform,
+            &Quadrature::default(),
+        )
+        .with_interior_kernel(&crate::testing::shipped_meta());
+        for m in [Method::Point, Method::Factorized, Method::Learned]
+            .map(|method| model(method, 5, 5, Illumination::Uniform, &Quadrature::default()))
+            .into_iter()
+            .chain([interior])
+        {
+            let method = (m.method(), m.interior_kernel());
             for a in [0.1, 0.3, 0.6, 0.9, 0.95, 0.99] {
                 let map = vec![a; 25];
                 let anchor = m.anchor(&map);

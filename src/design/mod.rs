@@ -76,6 +76,9 @@ pub struct Settings {
     pub albedo_space: AlbedoSpace,
     /// The scale b (MFP) that splits α_t's fine from its coarse part.
     pub space_blur: f64,
+    /// α_t under the interior vertices' kernel (learned; the renderer's
+    /// `interior` variant).
+    pub interior_kernel: bool,
 }
 
 impl Default for Settings {
@@ -92,6 +95,7 @@ impl Default for Settings {
             quadrature: Quadrature::default(),
             albedo_space: AlbedoSpace::default(),
             space_blur: SPACE_BLUR,
+            interior_kernel: false,
         }
     }
 }
@@ -544,6 +548,10 @@ impl<'a> Designer<'a> {
             &settings.quadrature,
         )?
         .with_albedo_space(settings.albedo_space, settings.space_blur)?;
+        let app = match (settings.interior_kernel, meta) {
+            (true, Some(meta)) => app.with_interior_kernel(meta),
+            _ => app,
+        };
         Ok(Designer {
             app,
             coord: Reflectance::new(basis, range),

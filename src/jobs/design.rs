@@ -132,6 +132,8 @@ pub struct DesignDoc {
     /// α_t's space and scale b (MFP) in `learned`.
     pub albedo_space: String,
     pub space_blur: f64,
+    /// α_t under the interior vertices' kernel in `learned`.
+    pub interior_kernel: bool,
     pub history: Vec<Step>,
     pub evaluations: usize,
     pub setup_s: f64,
@@ -174,6 +176,7 @@ pub fn run(opts: &DesignOptions) -> Result<DesignDoc> {
         quadrature: [s.quadrature.rings, s.quadrature.angles],
         albedo_space: s.albedo_space.name().into(),
         space_blur: s.space_blur,
+        interior_kernel: s.interior_kernel,
         history: designed.history.clone(),
         evaluations: designed.evaluations,
         setup_s: designed.setup_seconds,

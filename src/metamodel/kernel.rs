@@ -245,6 +245,65 @@ impl Gmm {
     }
 }
 
+/// The least interior vertex count m of [`interior_into`]: it bounds the
+/// signed weights to [−1/m, (m + 2)/m] = [−1, 3].
+pub const INTERIOR_MIN: f64 = 1.0;
+
+/// Width (MFP) of the component that stands for an end vertex that lies
+/// exactly under its end point (narrower than any texel, so a read of it is
+/// the texel's value).
+pub const POINT_SIGMA: f64 = 1e-3;
+
+/// The kernel of a path's interior vertices (all but the first and the
+/// last), into `out`, from the all-vertex kernel `all` and the end
+/// vertices' kernels at distance `d` (MFP): `first` (`None`: a point at
+/// x_i, t = 0, as under normal incidence) and `last` (`None`: a point at
+/// x_e, t = d).
+///
+/// The all-vertex kernel is the vertices' density normalised by their mean
+/// count n̄, so n̄·K_all = K_first + K_last + (n̄ − 2)·K_int and
+///
+///   K_int = ((m + 2)·K_all − K_first − K_last)/m,  m = max(n̄ − 2, [`INTERIOR_MIN`]),
+///
+/// a signed mixture of unit mass (each input kernel is normalised first).
+/// For the homogeneous profile, n̄ − 2 = ∂ln(Rₘ/α²)/∂ln α
+/// ([`crate::render::svbssrdf::BasisTable::interior_vertices`]). Below the
+/// floor the end lobes are only partly removed. docs/method.md §4.
+pub fn interior_into(
+    all: &Gmm,
+    first: Option<&Gmm>,
+    last: Option<&Gmm>,
+    d: f64,
+    m: f64,
+    out: &mut Gmm,
+) {
+    let m = m.max(INTERIOR_MIN);
+    let point = |t: f64| Component {
+        weight: 1.0,
+        t,
+        s: 0.0,
+        sigma: POINT_SIGMA,
+    };
+    out.components.clear();
+    let mut push = |g: Option<&Gmm>, t: f64, scale: f64| match g {
+        Some(g) => {
+            let w = scale / g.total_weight();
+            out.components
+                .extend(g.components.iter().map(|c| Component {
+                    weight: c.weight * w,
+                    ..c.clone()
+                }));
+        }
+        None => out.components.push(Component {
+            weight: scale,
+            ..point(t)
+        }),
+    };
+    push(Some(all), 0.0, (m + 2.0) / m);
+    push(first, 0.0, -1.0 / m);
+    push(last, d, -1.0 / m);
+}
+
 /// The manual kernel at distance d (MFP, d ≥ 0), docs/design.md §4, fixed and never
 /// tuned against render errors: three isotropic Gaussians on the axis at
 /// t = 0, d/2, d with weights 0.25, 0.5, 0.25 and widths
@@ -291,6 +350,73 @@ pub fn scale_for_density(kernel_at_unit_density_for_rho_d: &Gmm, rho: f64) -> Gm
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_interior_kernel_is_what_the_ends_leave() {
+        // All vertices of paths with m interior vertices drawn from `wide`,
+        // the first at x_i and the last from `end`: n̄·K_all = δ_i + K_end
+        // + m·K_wide with n̄ = m + 2. Removing the ends gives back `wide`.
+        let c = |weight: f64, t: f64, sigma: f64| Component {
+            weight,
+            t,
+            s: 0.0,
+            sigma,
+        };
+        let (d, m) = (1.5, 3.0);
+        let wide = Gmm {
+            components: vec![c(0.7, 0.75, 0.6), c(0.3, 0.2, 1.1)],
+        };
+        let end = Gmm {
+            components: vec![c(1.0, 1.4, 0.15)],
+        };
+        let n = m + 2.0;
+        let mut all = Gmm {
+            components: vec![c(1.0 / n, 0.0, POINT_SIGMA)],
+        };
+        all.components
+            .extend(end.components.iter().map(|k| c(k.weight / n, k.t, k.sigma)));
+        all.components.extend(
+            wide.components
+                .iter()
+                .map(|k| c(k.weight * m / n, k.t, k.sigma)),
+        );
+        // Input kernels of any mass: each is normalised first.
+        let heavier = |g: &Gmm, f: f64| Gmm {
+            components: g
+                .components
+                .iter()
+                .map(|k| c(k.weight * f, k.t, k.sigma))
+                .collect(),
+        };
+        let all = heavier(&all, 2.0);
+        let mut out = Gmm::default();
+        interior_into(&all, None, Some(&heavier(&end, 0.5)), d, m, &mut out);
+        assert!((out.total_weight() - 1.0).abs() < 1e-12);
+        for (t, s) in [
+            (0.0, 0.0),
+            (0.3, 0.1),
+            (0.75, 0.0),
+            (1.4, 0.0),
+            (1.4, 0.3),
+            (2.5, -0.5),
+        ] {
+            let (got, want) = (out.density(t, s), wide.density(t, s));
+            assert!(
+                (got - want).abs() < 1e-9 * (1.0 + want),
+                "({t}, {s}): {got} vs {want}"
+            );
+        }
+        // A point last vertex lies at t = d; below the floor m the ends are
+        // only partly removed, and the weights stay within [−1, 3].
+        interior_into(&all, None, None, d, 0.2, &mut out);
+        assert_eq!(out.components.last().unwrap().t, d);
+        assert!((out.total_weight() - 1.0).abs() < 1e-12);
+        assert!(
+            out.components
+                .iter()
+                .all(|k| (-1.0..=3.0).contains(&k.weight))
+        );
+    }
 
     /// A non-trivial kernel with off-axis centres and unequal widths.
     fn skewed() -> Gmm {

@@ -65,7 +65,7 @@ use crate::fastmath::exp4;
 use crate::forward::maps::TexelMap;
 use crate::forward::medium::Observable;
 use crate::metamodel::basis::{BasisModel, ExpMixture, albedo_coordinate};
-use crate::metamodel::kernel::{Component, Gmm};
+use crate::metamodel::kernel::{Component, Gmm, INTERIOR_MIN, POINT_SIGMA, interior_into};
 use crate::metamodel::meta::MetaModelFile;
 use crate::render::pyramid::{self, GaussianPyramid};
 use std::f64::consts::PI;
@@ -151,6 +151,13 @@ pub struct Variant {
     pub plain: bool,
     pub vertex_kernels: bool,
     pub two_pass: bool,
+    /// α_t under the interior vertices' kernel ([`interior_into`]) instead
+    /// of the all-vertex one, so that the first and last vertices, which
+    /// l_i and l_e already count, are not counted again in the decay.
+    /// Exact to first order in the albedo's variation; measured better on
+    /// the translucent scenes and in texture design, worse on the
+    /// canonical ones (docs/method.md §4).
+    pub interior: bool,
     /// The space in which α_t is averaged under the all-vertex kernel
     /// (two-scale unless `linear`, see [`AlbedoSpace`]).
     pub space: AlbedoSpace,
@@ -308,6 +315,7 @@ impl Default for Variant {
             plain: false,
             vertex_kernels: true,
             two_pass: false,
+            interior: false,
             space: AlbedoSpace::Transport,
             space_blur: SPACE_BLUR,
             density_law: DensityLaw::Endpoints,
@@ -327,6 +335,9 @@ impl Variant {
         }
         if self.two_pass {
             s += "+2pass";
+        }
+        if self.interior {
+            s += "+interior";
         }
         let d = Variant::default();
         if self.space != d.space {
@@ -445,6 +456,20 @@ impl BasisTable {
             dv += (e * wide::f64x4::from(de)).reduce_add();
         }
         (v, dv * du_dalpha)
+    }
+
+    /// n̄ − 2 at unit density: the mean number of a multiply scattered
+    /// path's interior vertices (all but its first and last) at distance r
+    /// (MFP) and albedo α, from Rₘ(r; α) = Σₙ pₙ(r)·αⁿ:
+    /// n̄ = ∂ln Rₘ/∂ln α, so n̄ − 2 = α·∂(Rₘ/α²)/∂α / (Rₘ/α²). 0 where the
+    /// table's Rₘ underflows.
+    pub fn interior_vertices(&self, r: f64, alpha: f64) -> f64 {
+        let (v, dv) = self.multi_over_alpha2_grad(r, alpha);
+        if v > 0.0 && (alpha * dv / v).is_finite() {
+            (alpha * dv / v).max(0.0)
+        } else {
+            0.0
+        }
     }
 
     /// (R₁(r; 1), Rₘ(r; α)/α²) at unit density (1/MFP²), r ≥ [`R_MIN`]:
@@ -567,6 +592,7 @@ pub struct Scratch {
     kernel: Gmm,
     first: Gmm,
     last: Gmm,
+    interior: Gmm,
 }
 
 /// The material of one render pass: albedo channels and density on one
@@ -1010,23 +1036,49 @@ impl SvBssrdf {
                 meta.last.eval_into(d, a0, rho0, &mut scratch.last);
             }
         }
-        let (mut alpha_t, mut rho_bar) = self.aggregate(c, &frame, &scratch.kernel, true);
         // A point vertex kernel (manual's both; learned's first under normal
         // incidence, `first: None`; the last for the radiance along the
         // normal, whose last vertex lies straight below x_e) aggregates to
         // the point albedo in hand.
         let (mut li, mut le) = (ai, ae);
+        let interior = vertex.filter(|_| self.variant.interior);
+        let fast =
+            interior.and_then(|meta| self.interior_in_parts(meta, c, &frame, d, rho0, scratch));
         if let Some(meta) = vertex {
             if meta.first.is_some() {
                 li = self.aggregate(c, &frame, &scratch.first, false).0;
             }
             if b.observable == Observable::Exitance {
-                le = self.aggregate(c, &frame, &scratch.last, false).0;
+                le = match fast {
+                    Some((_, le)) => le,
+                    None => self.aggregate(c, &frame, &scratch.last, false).0,
+                };
             }
+        }
+        let (mut alpha_t, mut rho_bar) = match fast {
+            Some((alpha_t, _)) => (alpha_t, rho0),
+            None => self.aggregate(c, &frame, &scratch.kernel, true),
+        };
+        if let (Some(meta), None) = (interior, fast) {
+            // n̄ at the all-vertex α_t: the albedo that the paths see.
+            self.interior_kernel(meta, d, alpha_t, rho0, scratch);
+            (alpha_t, rho_bar) = self.aggregate(c, &frame, &scratch.interior, true);
         }
         if self.variant.two_pass {
             self.all_kernel(d, alpha_t, rho_bar, &mut scratch.kernel);
-            (alpha_t, rho_bar) = self.aggregate(c, &frame, &scratch.kernel, true);
+            (alpha_t, rho_bar) = match interior {
+                Some(meta) => {
+                    if let Some(first) = &meta.first {
+                        first.eval_into(d, alpha_t, rho_bar, &mut scratch.first);
+                    }
+                    if b.observable == Observable::Exitance {
+                        meta.last.eval_into(d, alpha_t, rho_bar, &mut scratch.last);
+                    }
+                    self.interior_kernel(meta, d, alpha_t, rho_bar, scratch);
+                    self.aggregate(c, &frame, &scratch.interior, true)
+                }
+                None => self.aggregate(c, &frame, &scratch.kernel, true),
+            };
         }
         // The single-scattering vertex: below x_i under normal incidence;
         // for the radiance along the normal below x_e under any light.
@@ -1043,6 +1095,87 @@ impl SvBssrdf {
             DensityLaw::Endpoints => (profile(ri) * profile(re)).sqrt(),
             DensityLaw::Kernel => profile(rho_bar),
         }
+    }
+
+    /// The interior vertices' kernel ([`interior_into`]) into
+    /// `scratch.interior`, from the all-vertex and end kernels in `scratch`
+    /// (queried at (d, α, ρ)) and n̄ − 2 of the homogeneous profile there.
+    #[inline]
+    fn interior_kernel(
+        &self,
+        meta: &MetaModelFile,
+        d: f64,
+        alpha: f64,
+        rho: f64,
+        scratch: &mut Scratch,
+    ) {
+        let b = &*self.basis;
+        let m = b.interior_vertices(d.max(R_MIN) * rho, alpha);
+        let first = meta.first.as_ref().map(|_| &scratch.first);
+        let last = (b.observable == Observable::Exitance).then_some(&scratch.last);
+        interior_into(&scratch.kernel, first, last, d, m, &mut scratch.interior);
+    }
+
+    /// (α_t under the interior kernel, l_e) in the common case, a constant
+    /// density with the first vertex under x_i in exitance, from the parts
+    /// of K_int's signed mixture read once each: K_all's means, K_last's
+    /// (which also give l_e) and the point's, combined as
+    /// ((m + 2)·ȳ_all − ȳ_last − ȳ_point)/m per aggregand (the same sums as
+    /// [`Self::interior_kernel`]'s mixture, in another order). `None`
+    /// otherwise (density-weighted means do not combine linearly).
+    #[inline]
+    fn interior_in_parts(
+        &self,
+        meta: &MetaModelFile,
+        c: usize,
+        frame: &Frame,
+        d: f64,
+        rho0: f64,
+        scratch: &mut Scratch,
+    ) -> Option<(f64, f64)> {
+        let b = &*self.basis;
+        let (Aggregates::Kernel(p), Density::Constant(_)) =
+            (&self.aggregates, &self.material.density)
+        else {
+            return None;
+        };
+        if meta.first.is_some() || b.observable != Observable::Exitance {
+            return None;
+        }
+        let point = &mut scratch.interior.components;
+        point.clear();
+        point.push(Component {
+            weight: 1.0,
+            t: 0.0,
+            s: 0.0,
+            sigma: POINT_SIGMA,
+        });
+        let m_at = |alpha: f64| {
+            b.interior_vertices(d.max(R_MIN) * rho0, alpha)
+                .max(INTERIOR_MIN)
+        };
+        let combine =
+            |m: f64, all: f64, last: f64, point: f64| ((m + 2.0) * all - last - point) / m;
+        Some(match &p.mapped {
+            Some(q) => {
+                let qs = [&q.phi, &q.residual];
+                let ([y_a, r_a], _) = self.means(p, qs, c, frame, &scratch.kernel);
+                let ([y_l, r_l, le], _) =
+                    self.means(p, [&q.phi, &q.residual, &p.linear], c, frame, &scratch.last);
+                let ([y_p, r_p], _) = self.means(p, qs, c, frame, &scratch.interior);
+                let space = self.variant.space;
+                let m = m_at((space.inverse(y_a) + r_a).clamp(0.0, 1.0));
+                let alpha_t = space.inverse(combine(m, y_a, y_l, y_p)) + combine(m, r_a, r_l, r_p);
+                (alpha_t.clamp(0.0, 1.0), le.clamp(0.0, 1.0))
+            }
+            None => {
+                let ([a], _) = self.means(p, [&p.linear], c, frame, &scratch.kernel);
+                let ([le], _) = self.means(p, [&p.linear], c, frame, &scratch.last);
+                let ([a_p], _) = self.means(p, [&p.linear], c, frame, &scratch.interior);
+                let m = m_at(a.clamp(0.0, 1.0));
+                (combine(m, a, le, a_p).clamp(0.0, 1.0), le.clamp(0.0, 1.0))
+            }
+        })
     }
 
     /// The all-vertex kernel at (d, α₀, ρ₀) in physical MFP, into `out`:
@@ -1080,7 +1213,8 @@ impl SvBssrdf {
 
     /// The (density-weighted unless `plain`) means of the aggregands `qs`
     /// of channel `c` under `kernel` placed in `frame`, and ρ̄ (one pyramid
-    /// query per component).
+    /// query per component). One or two aggregands; three at a constant
+    /// density.
     #[inline]
     fn means<const N: usize>(
         &self,
@@ -1090,7 +1224,7 @@ impl SvBssrdf {
         frame: &Frame,
         kernel: &Gmm,
     ) -> ([f64; N], f64) {
-        debug_assert!((1..=2).contains(&N), "one or two aggregands");
+        debug_assert!((1..=3).contains(&N), "one to three aggregands");
         let mut wsum = 0.0;
         let mut den = 0.0;
         let mut num = [0.0; N];
@@ -1107,6 +1241,7 @@ impl SvBssrdf {
                             i => &qs[i - 1].rho_alpha[c],
                         }
                     };
+                    debug_assert!(N <= 2, "three aggregands only at a constant density");
                     let mut v = [0.0; 3];
                     if N == 1 {
                         let ([r, o], _) =
@@ -1431,6 +1566,96 @@ mod tests {
     }
 
     #[test]
+    fn interior_vertices_are_the_albedo_derivative_of_the_profile() {
+        // n̄ − 2 = ∂ln(Rₘ/α²)/∂ln α of the basis model itself (a central
+        // difference in α; the table is within 1e-4 of the model), growing
+        // with the albedo as paths get longer.
+        let (m, t) = basis();
+        let ln_m = |r: f64, a: f64| (m.multi(a).density(r) / (a * a)).ln();
+        for r in [0.3, 1.0, 3.0] {
+            let mut last = 0.0;
+            for a in [0.3, 0.6, 0.8, 0.9, 0.95, 0.99] {
+                let h = 1e-4;
+                let want = a * (ln_m(r, a + h) - ln_m(r, a - h)) / (2.0 * h);
+                let got = t.interior_vertices(r, a);
+                assert!(
+                    (got - want).abs() < 0.02 * want + 0.01,
+                    "r {r}, α {a}: {got} vs {want}"
+                );
+                assert!(got > last, "r {r}, α {a}: {got} after {last}");
+                last = got;
+            }
+        }
+        assert_eq!(t.interior_vertices(1e6, 0.5), 0.0, "R_m underflows");
+    }
+
+    #[test]
+    fn the_interior_kernel_in_parts_is_the_whole_mixture() {
+        // At a constant density `learned --interior` combines K_all's,
+        // K_last's and the point's means; a density map of ones takes the
+        // whole signed mixture through the density-weighted means. Both
+        // spaces, channels of different textures.
+        let (_, t) = basis();
+        let meta = Arc::new(crate::testing::shipped_meta());
+        let albedo = vec![
+            noise_map(24, 0.25, 0.2, 0.95, 7),
+            noise_map(24, 0.25, 0.85, 0.995, 9),
+        ];
+        let ones = TexelMap::new(24, 24, 0.25, vec![1.0; 24 * 24]).unwrap();
+        for space in [AlbedoSpace::Transport, AlbedoSpace::Linear] {
+            let variant = Variant {
+                interior: true,
+                space,
+                ..Variant::default()
+            };
+            let sv = |density| {
+                SvBssrdf::new(
+                    Method::Learned,
+                    variant,
+                    t.clone(),
+                    Some(meta.clone()),
+                    albedo.clone(),
+                    density,
+                )
+                .unwrap()
+            };
+            let (parts, whole) = (sv(Density::Constant(1.0)), sv(Density::Map(ones.clone())));
+            let plain = SvBssrdf::new(
+                Method::Learned,
+                Variant {
+                    space,
+                    ..Variant::default()
+                },
+                t.clone(),
+                Some(meta.clone()),
+                albedo.clone(),
+                Density::Constant(1.0),
+            )
+            .unwrap();
+            let mut scratch = Scratch::default();
+            for c in 0..2 {
+                for (xi, xe) in [
+                    ([0.1, -0.2], [0.9, 0.4]),
+                    ([-1.0, 1.0], [1.5, -2.0]),
+                    ([0.3, 0.3], [0.35, 0.3]),
+                ] {
+                    let a = parts.eval(c, xi, xe, &mut scratch);
+                    let b = whole.eval(c, xi, xe, &mut scratch);
+                    assert!(
+                        (a - b).abs() <= 1e-9 * b,
+                        "{space:?} channel {c}: {a} vs {b}"
+                    );
+                    let p = plain.eval(c, xi, xe, &mut scratch);
+                    assert!(
+                        (a - p).abs() > 1e-4 * p,
+                        "{space:?} channel {c}: the ends must matter"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
     fn the_table_stays_exact_at_zero_albedo_for_tiny_amplitudes() {
         // Amplitudes e^{-60}: α²·A/α² underflowed at the old table's
         // α = 1e-150 stand-in, leaving Rₘ/α² = 0 at α = 0.
@@ -1548,6 +1773,7 @@ mod tests {
                             plain: true,
                             vertex_kernels: true,
                             two_pass: true,
+                            interior: true,
                             space: AlbedoSpace::Log,
                             space_blur: 0.5,
                             density_law: DensityLaw::Kernel,
@@ -1735,14 +1961,16 @@ mod tests {
         let meta = Arc::new(file);
         let albedo = noise_map(24, 0.25, 0.2, 0.95, 7);
         let density = noise_map(24, 0.25, 0.5, 3.0, 8);
-        for (two_pass, density_law) in [
-            (false, DensityLaw::Endpoints),
-            (true, DensityLaw::Endpoints),
-            (false, DensityLaw::Kernel),
+        for (two_pass, density_law, interior) in [
+            (false, DensityLaw::Endpoints, false),
+            (true, DensityLaw::Endpoints, false),
+            (false, DensityLaw::Kernel, false),
+            (false, DensityLaw::Endpoints, true),
         ] {
             let variant = Variant {
                 two_pass,
                 density_law,
+                interior,
                 ..Variant::default()
             };
             let sv = SvBssrdf::new(
@@ -1772,6 +2000,21 @@ mod tests {
                     (alpha_t, rho_bar) = agg(&meta.all.eval(d, alpha_t, rho_bar).gmm, true);
                 }
                 let first = meta.first.as_ref().unwrap();
+                if interior {
+                    // Without the end lobes, n̄ at the all-vertex α_t.
+                    let mut k = Gmm::default();
+                    interior_into(
+                        &meta.all.eval(d, a0, rho0).gmm,
+                        Some(&first.eval(d, a0, rho0).gmm),
+                        Some(&meta.last.eval(d, a0, rho0).gmm),
+                        d,
+                        t.interior_vertices(d * rho0, alpha_t),
+                        &mut k,
+                    );
+                    let plain = alpha_t;
+                    (alpha_t, rho_bar) = agg(&k, true);
+                    assert!((alpha_t - plain).abs() > 1e-3, "the ends must matter here");
+                }
                 let li = agg(&first.eval(d, a0, rho0).gmm, false).0;
                 let le = agg(&meta.last.eval(d, a0, rho0).gmm, false).0;
                 assert!(
