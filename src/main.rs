@@ -134,7 +134,8 @@ enum Command {
         out: PathBuf,
     },
     /// The open experiments over the canonical scenes (density-scaled vs
-    /// plain, vertex kernels vs point albedos, two passes, sampling, learned
+    /// plain, vertex kernels vs point albedos, two passes, the interior
+    /// kernel, sampling, learned
     /// vs manual, and error vs meta-model complexity with --models): tables
     /// in experiments.html (self-contained), experiments.md and .json.
     Experiments(ExperimentsArgs),

@@ -189,6 +189,7 @@ fn configs(name: &str, settings: &Settings) -> Vec<Config> {
     if name != "features" {
         c.push(with(Method::Learned, &|k| k.variant.vertex_kernels = false));
     }
+    c.push(with(Method::Learned, &|k| k.variant.interior = true));
     if matches!(name, "stripes" | "checker" | "density") {
         // Manual's kernel does not depend on α₀: a second pass changes nothing.
         c.push(with(Method::Learned, &|k| k.variant.two_pass = true));
@@ -476,7 +477,7 @@ fn sections(rows: &[Row]) -> (Vec<Block>, Option<(usize, Vec<crate::jobs::plot::
         "learned is below manual on {learned_wins} of {n} scenes/passes; manual is below the \
          best of point/factorized/line/ellipse on {manual_wins} of {n}."
     )));
-    let sections: [(&str, &[Method], &str, [&str; 2]); 3] = [
+    let sections: [(&str, &[Method], &str, [&str; 2]); 4] = [
         (
             "Density-scaled vs plain aggregation",
             &[Method::Manual, Method::Learned],
@@ -494,6 +495,12 @@ fn sections(rows: &[Row]) -> (Vec<Block>, Option<(usize, Vec<crate::jobs::plot::
             &[Method::Learned],
             "+2pass",
             ["one pass", "two passes"],
+        ),
+        (
+            "α_t under the all-vertex kernel vs the interior vertices' kernel (learned)",
+            &[Method::Learned],
+            "+interior",
+            ["all vertices", "interior"],
         ),
     ];
     for (title, ms, variant, names) in sections {
