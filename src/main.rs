@@ -564,7 +564,7 @@ struct RenderArgs {
     /// Kernel-method variant (learned): α_t under the interior vertices'
     /// kernel, without the first and last vertices that the local terms
     /// already count. Better on translucent materials, worse on strong
-    /// contrast (docs/method.md §4).
+    /// contrast (docs/design.md §4).
     #[arg(long)]
     interior: bool,
     /// Kernel-method variant: the space in which α_t averages albedo

@@ -33,7 +33,10 @@
 //!   (the renderer's two passes), on a grid of [`ANCHOR_BINS`] albedos
 //!   uniform in √(1 − α). With the shapes fixed, M is a smooth function of
 //!   α whose gradient this module computes exactly; the designer
-//!   re-anchors at its current map before each L-BFGS-B round.
+//!   re-anchors at its current map before each L-BFGS-B round. With
+//!   [`Appearance::with_interior_kernel`] α_t is read under the interior
+//!   vertices' kernel at each bin's α (the renderer's `--interior`), the
+//!   anchor's first pass still under the all-vertex one.
 //!
 //! The Gaussian means read a [`BlurStack`] (one of α and, in a two-scale
 //! space, one of φ(ᾱ) and one of α − ᾱ); the gradient runs the reads

@@ -268,7 +268,7 @@ pub const POINT_SIGMA: f64 = 1e-3;
 /// a signed mixture of unit mass (each input kernel is normalised first).
 /// For the homogeneous profile, n̄ − 2 = ∂ln(Rₘ/α²)/∂ln α
 /// ([`crate::render::svbssrdf::BasisTable::interior_vertices`]). Below the
-/// floor the end lobes are only partly removed. docs/method.md §4.
+/// floor the end lobes are only partly removed (docs/design.md §4).
 pub fn interior_into(
     all: &Gmm,
     first: Option<&Gmm>,

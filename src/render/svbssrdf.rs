@@ -155,8 +155,8 @@ pub struct Variant {
     /// of the all-vertex one, so that the first and last vertices, which
     /// l_i and l_e already count, are not counted again in the decay.
     /// Exact to first order in the albedo's variation; measured better on
-    /// the translucent scenes and in texture design, worse on the
-    /// canonical ones (docs/method.md §4).
+    /// the translucent scenes, worse on the canonical ones and in texture
+    /// design (docs/design.md §4).
     pub interior: bool,
     /// The space in which α_t is averaged under the all-vertex kernel
     /// (two-scale unless `linear`, see [`AlbedoSpace`]).
