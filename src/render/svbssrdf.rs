@@ -1062,7 +1062,7 @@ impl SvBssrdf {
         if let (Some(meta), None) = (interior, fast) {
             // n̄ at the all-vertex α_t: the albedo that the paths see.
             self.interior_kernel(meta, d, alpha_t, rho0, scratch);
-            (alpha_t, rho_bar) = self.aggregate(c, &frame, &scratch.interior, true);
+            (alpha_t, rho_bar) = self.aggregate_interior(c, &frame, scratch, (alpha_t, rho_bar));
         }
         if self.variant.two_pass {
             self.all_kernel(d, alpha_t, rho_bar, &mut scratch.kernel);
@@ -1074,8 +1074,9 @@ impl SvBssrdf {
                     if b.observable == Observable::Exitance {
                         meta.last.eval_into(d, alpha_t, rho_bar, &mut scratch.last);
                     }
+                    let all = self.aggregate(c, &frame, &scratch.kernel, true);
                     self.interior_kernel(meta, d, alpha_t, rho_bar, scratch);
-                    self.aggregate(c, &frame, &scratch.interior, true)
+                    self.aggregate_interior(c, &frame, scratch, all)
                 }
                 None => self.aggregate(c, &frame, &scratch.kernel, true),
             };
@@ -1114,6 +1115,25 @@ impl SvBssrdf {
         let first = meta.first.as_ref().map(|_| &scratch.first);
         let last = (b.observable == Observable::Exitance).then_some(&scratch.last);
         interior_into(&scratch.kernel, first, last, d, m, &mut scratch.interior);
+    }
+
+    /// (α_t, ρ̄) with α_t under `scratch.interior` and ρ̄ the all-vertex
+    /// kernel's, given `all` = (α_t, ρ̄) under the all-vertex kernel. A
+    /// signed mixture's density weight ∫K_int ρ can fail to be positive
+    /// where the density jumps by orders of magnitude between the ends and
+    /// the interior; there the all-vertex α_t stands.
+    #[inline]
+    fn aggregate_interior(
+        &self,
+        c: usize,
+        frame: &Frame,
+        scratch: &Scratch,
+        all: (f64, f64),
+    ) -> (f64, f64) {
+        match self.aggregate(c, frame, &scratch.interior, true) {
+            (alpha, weight) if alpha.is_finite() && weight > 0.0 => (alpha, all.1),
+            _ => all,
+        }
     }
 
     /// (α_t under the interior kernel, l_e) in the common case, a constant
@@ -2012,7 +2032,7 @@ mod tests {
                         &mut k,
                     );
                     let plain = alpha_t;
-                    (alpha_t, rho_bar) = agg(&k, true);
+                    alpha_t = agg(&k, true).0;
                     assert!((alpha_t - plain).abs() > 1e-3, "the ends must matter here");
                 }
                 let li = agg(&first.eval(d, a0, rho0).gmm, false).0;
