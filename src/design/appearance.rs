@@ -1032,14 +1032,14 @@ fn tabulate(
     // of the homogeneous profile at (d, α) (the renderer's, with its
     // all-vertex α_t as this bin's α).
     let interior = interior.map(|table| {
-        let mut out = Gmm::default();
         (0..all.len())
             .map(|i| {
                 let (d, alpha) = (offsets[i / ANCHOR_BINS].d, alpha_of(i % ANCHOR_BINS));
                 let m = table.interior_vertices(d.max(R_MIN), alpha);
                 let f = first.as_ref().map(|f| &f[i]);
+                let mut out = Gmm::default();
                 interior_into(&all[i], f, Some(&last[i]), d, m, &mut out);
-                out.clone()
+                out
             })
             .collect::<Vec<_>>()
     });

@@ -110,6 +110,17 @@ pub fn gauss_interval_grad(a: f64, b: f64, mu: f64, sigma: f64) -> [f64; 3] {
 }
 
 impl Component {
+    /// A vertex that lies exactly under its end of the pair, at t on the
+    /// axis, of weight w: a Gaussian of width [`POINT_SIGMA`].
+    pub fn point(weight: f64, t: f64) -> Self {
+        Component {
+            weight,
+            t,
+            s: 0.0,
+            sigma: POINT_SIGMA,
+        }
+    }
+
     /// N₂((t, s); (t_k, s_k), σ_k² I)·w_k (1/MFP²).
     #[inline]
     pub fn density(&self, t: f64, s: f64) -> f64 {
@@ -278,12 +289,6 @@ pub fn interior_into(
     out: &mut Gmm,
 ) {
     let m = m.max(INTERIOR_MIN);
-    let point = |t: f64| Component {
-        weight: 1.0,
-        t,
-        s: 0.0,
-        sigma: POINT_SIGMA,
-    };
     out.components.clear();
     let mut push = |g: Option<&Gmm>, t: f64, scale: f64| match g {
         Some(g) => {
@@ -294,10 +299,7 @@ pub fn interior_into(
                     ..c.clone()
                 }));
         }
-        None => out.components.push(Component {
-            weight: scale,
-            ..point(t)
-        }),
+        None => out.components.push(Component::point(scale, t)),
     };
     push(Some(all), 0.0, (m + 2.0) / m);
     push(first, 0.0, -1.0 / m);

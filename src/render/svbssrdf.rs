@@ -65,7 +65,7 @@ use crate::fastmath::exp4;
 use crate::forward::maps::TexelMap;
 use crate::forward::medium::Observable;
 use crate::metamodel::basis::{BasisModel, ExpMixture, albedo_coordinate};
-use crate::metamodel::kernel::{Component, Gmm, INTERIOR_MIN, POINT_SIGMA, interior_into};
+use crate::metamodel::kernel::{Component, Gmm, INTERIOR_MIN, interior_into};
 use crate::metamodel::meta::MetaModelFile;
 use crate::render::pyramid::{self, GaussianPyramid};
 use std::f64::consts::PI;
@@ -1029,12 +1029,7 @@ impl SvBssrdf {
         };
         self.all_kernel(d, a0, rho0, &mut scratch.kernel);
         if let Some(meta) = vertex {
-            if let Some(first) = &meta.first {
-                first.eval_into(d, a0, rho0, &mut scratch.first);
-            }
-            if b.observable == Observable::Exitance {
-                meta.last.eval_into(d, a0, rho0, &mut scratch.last);
-            }
+            self.end_kernels(meta, d, a0, rho0, scratch);
         }
         // A point vertex kernel (manual's both; learned's first under normal
         // incidence, `first: None`; the last for the radiance along the
@@ -1068,12 +1063,7 @@ impl SvBssrdf {
             self.all_kernel(d, alpha_t, rho_bar, &mut scratch.kernel);
             (alpha_t, rho_bar) = match interior {
                 Some(meta) => {
-                    if let Some(first) = &meta.first {
-                        first.eval_into(d, alpha_t, rho_bar, &mut scratch.first);
-                    }
-                    if b.observable == Observable::Exitance {
-                        meta.last.eval_into(d, alpha_t, rho_bar, &mut scratch.last);
-                    }
+                    self.end_kernels(meta, d, alpha_t, rho_bar, scratch);
                     let all = self.aggregate(c, &frame, &scratch.kernel, true);
                     self.interior_kernel(meta, d, alpha_t, rho_bar, scratch);
                     self.aggregate_interior(c, &frame, scratch, all)
@@ -1095,6 +1085,25 @@ impl SvBssrdf {
             DensityLaw::Endpoints if ri == re => profile(ri),
             DensityLaw::Endpoints => (profile(ri) * profile(re)).sqrt(),
             DensityLaw::Kernel => profile(rho_bar),
+        }
+    }
+
+    /// The first- (when the model has one) and last-vertex (in exitance)
+    /// kernels at (d, α, ρ) into `scratch`.
+    #[inline]
+    fn end_kernels(
+        &self,
+        meta: &MetaModelFile,
+        d: f64,
+        alpha: f64,
+        rho: f64,
+        scratch: &mut Scratch,
+    ) {
+        if let Some(first) = &meta.first {
+            first.eval_into(d, alpha, rho, &mut scratch.first);
+        }
+        if self.basis.observable == Observable::Exitance {
+            meta.last.eval_into(d, alpha, rho, &mut scratch.last);
         }
     }
 
@@ -1164,12 +1173,7 @@ impl SvBssrdf {
         }
         let point = &mut scratch.interior.components;
         point.clear();
-        point.push(Component {
-            weight: 1.0,
-            t: 0.0,
-            s: 0.0,
-            sigma: POINT_SIGMA,
-        });
+        point.push(Component::point(1.0, 0.0));
         let m_at = |alpha: f64| {
             b.interior_vertices(d.max(R_MIN) * rho0, alpha)
                 .max(INTERIOR_MIN)
