@@ -578,10 +578,10 @@ impl Appearance {
     pub fn appearance(&self, alpha: &[f64], anchor: &Anchor) -> Vec<f64> {
         assert_eq!(alpha.len(), self.len(), "map shape");
         let stack = self.stack(alpha);
-        let m = (0..self.len())
-            .into_par_iter()
-            .map(|e| self.pixel(alpha, stack.as_ref(), anchor, e, None))
-            .collect();
+        let mut m = vec![0.0; self.len()];
+        m.par_chunks_mut(self.nx)
+            .enumerate()
+            .for_each(|(row, m)| self.row(alpha, stack.as_ref(), anchor, row, m, None));
         self.keep_stacks(stack);
         m
     }
@@ -614,11 +614,11 @@ impl Appearance {
         let mut partials = spare.unwrap_or_default();
         partials.clear();
         partials.resize(self.len() * n_k, [0.0; 6]);
-        let m = partials
-            .par_chunks_mut(n_k)
+        let mut m = vec![0.0; self.len()];
+        m.par_chunks_mut(self.nx)
+            .zip(partials.par_chunks_mut(self.nx * n_k))
             .enumerate()
-            .map(|(e, p)| self.pixel(alpha, stack.as_ref(), anchor, e, Some(p)))
-            .collect();
+            .for_each(|(row, (m, p))| self.row(alpha, stack.as_ref(), anchor, row, m, Some(p)));
         Linearization { m, partials, stack }
     }
 
@@ -649,34 +649,41 @@ impl Appearance {
                     v.clear();
                     v.resize(len, 0.0);
                 }
-                for e in block * per..((block + 1) * per).min(n) {
-                    if g[e] == 0.0 {
-                        continue;
-                    }
-                    let xe = self.centre(e);
+                // Per texel row, offsets outside ([`Self::row`]).
+                let (lo, hi) = (block * per, ((block + 1) * per).min(n));
+                for row in lo / self.nx..hi.div_ceil(self.nx) {
+                    let texels_of_row = (row * self.nx).max(lo)..((row + 1) * self.nx).min(hi);
                     for (o, off) in self.offsets.iter().enumerate() {
-                        let [c_i, c_e, c_t, c_le, c_li, c_y] = lin.partials[e * n_k + o];
-                        let w = g[e];
-                        let xi = [xe[0] + off.delta[0], xe[1] + off.delta[1]];
-                        texels[self.texel_of(xi)] += w * c_i;
-                        texels[e] += w * c_e;
-                        if let (Some(k), Some(stack)) = (&self.kernels, stack) {
-                            let [b0, b1] = anchor.bins[e * n_k + o];
-                            let all = k.all.get(o, b1);
-                            if c_t != 0.0 {
-                                match &stack.two_scale {
-                                    None => scatter(&stack.alpha, xe, all, w * c_t, &mut nodes),
-                                    Some(t) => {
-                                        let g = [w * c_y, w * c_t];
-                                        let nodes = [&mut nodes_phi[..], &mut nodes_res[..]];
-                                        scatter_pair(&t.phi, xe, all, g, nodes);
+                        for e in texels_of_row.clone() {
+                            if g[e] == 0.0 {
+                                continue;
+                            }
+                            let xe = self.centre(e);
+                            let [c_i, c_e, c_t, c_le, c_li, c_y] = lin.partials[e * n_k + o];
+                            let w = g[e];
+                            let xi = [xe[0] + off.delta[0], xe[1] + off.delta[1]];
+                            texels[self.texel_of(xi)] += w * c_i;
+                            texels[e] += w * c_e;
+                            if let (Some(k), Some(stack)) = (&self.kernels, stack) {
+                                let [b0, b1] = anchor.bins[e * n_k + o];
+                                let all = k.all.get(o, b1);
+                                if c_t != 0.0 {
+                                    match &stack.two_scale {
+                                        None => {
+                                            scatter(&stack.alpha, xe, all, [w * c_t], [&mut nodes])
+                                        }
+                                        Some(t) => {
+                                            let g = [w * c_y, w * c_t];
+                                            let nodes = [&mut nodes_phi[..], &mut nodes_res[..]];
+                                            scatter(&t.phi, xe, all, g, nodes);
+                                        }
                                     }
                                 }
-                            }
-                            let a = &stack.alpha;
-                            scatter(a, xe, k.last.get(o, b0), w * c_le, &mut nodes);
-                            if let Some(f) = &k.first {
-                                scatter(a, xe, f.get(o, b0), w * c_li, &mut nodes);
+                                let a = &stack.alpha;
+                                scatter(a, xe, k.last.get(o, b0), [w * c_le], [&mut nodes]);
+                                if let Some(f) = &k.first {
+                                    scatter(a, xe, f.get(o, b0), [w * c_li], [&mut nodes]);
+                                }
                             }
                         }
                     }
@@ -731,32 +738,63 @@ impl Appearance {
         texels
     }
 
-    /// M at texel `e`; with `partials`, also each offset's weighted partial
+    /// M along texel row `row` into `m` (one value per texel); with
+    /// `partials` (`n_k` per texel), also each offset's weighted partial
     /// derivatives of its term W_k·S_k: with respect to the point albedo
     /// under x_i and under x_e, to α_t (in a two-scale space: to the mean
     /// of α − ᾱ), to the means l_e and l_i, and (two-scale) to the mean y
-    /// of φ(ᾱ).
-    fn pixel(
+    /// of φ(ᾱ). The offsets are the outer loop: one offset's reads for
+    /// neighbouring texels fall on neighbouring nodes, which stay in the
+    /// cache; each texel still sums its terms in offset order.
+    fn row(
+        &self,
+        alpha: &[f64],
+        stack: Option<&Stacks>,
+        anchor: &Anchor,
+        row: usize,
+        m: &mut [f64],
+        mut partials: Option<&mut [[f64; 6]]>,
+    ) {
+        let n_k = self.offsets.len();
+        m.fill(0.0);
+        for (o, off) in self.offsets.iter().enumerate() {
+            for (j, mj) in m.iter_mut().enumerate() {
+                let e = row * self.nx + j;
+                let xe = self.centre(e);
+                let xi = [xe[0] + off.delta[0], xe[1] + off.delta[1]];
+                if !self.illumination.lit(xi) {
+                    continue;
+                }
+                let (s, d) = self.term(alpha, stack, anchor, e, o, xe, xi);
+                *mj += off.weight * s;
+                if let Some(p) = partials.as_deref_mut() {
+                    p[j * n_k + o] = d.map(|v| off.weight * v);
+                }
+            }
+        }
+    }
+
+    /// The term S_k of offset `o` at texel `e` (centre `xe`, entry `xi`)
+    /// and its unweighted partial derivatives ([`Self::row`]).
+    #[allow(clippy::too_many_arguments)]
+    #[inline]
+    fn term(
         &self,
         alpha: &[f64],
         stack: Option<&Stacks>,
         anchor: &Anchor,
         e: usize,
-        mut partials: Option<&mut [[f64; 6]]>,
-    ) -> f64 {
-        let xe = self.centre(e);
+        o: usize,
+        xe: [f64; 2],
+        xi: [f64; 2],
+    ) -> (f64, [f64; 6]) {
+        let off = &self.offsets[o];
         let ae = alpha[e];
         let b = &*self.basis;
         let n_k = self.offsets.len();
-        let mut m = 0.0;
-        for (o, off) in self.offsets.iter().enumerate() {
-            let xi = [xe[0] + off.delta[0], xe[1] + off.delta[1]];
-            if !self.illumination.lit(xi) {
-                continue;
-            }
+        {
             let ai = alpha[self.texel_of(xi)];
             let r = off.d.max(R_MIN);
-            let w = off.weight;
             let profile = |a: f64| {
                 let (mm, dm) = self.norm.multi(b, r, a);
                 let v = a * off.single + a * a * mm;
@@ -795,12 +833,8 @@ impl Appearance {
                     (s, [c_i, 0.0, c_t, li * mm, c_li, c_y])
                 }
             };
-            m += w * s;
-            if let Some(p) = partials.as_deref_mut() {
-                p[o] = d.map(|v| w * v);
-            }
+            (s, d)
         }
-        m
     }
 }
 
@@ -883,10 +917,7 @@ pub struct Linearization {
 fn mean(stack: &BlurStack, xe: [f64; 2], reads: &[Read]) -> f64 {
     reads
         .iter()
-        .map(|r| {
-            let taps = stack.taps_at([xe[0] + r.shift[0], xe[1] + r.shift[1]], r.level);
-            r.share * stack.read(&taps)
-        })
+        .map(|r| r.share * stack.read_at([xe[0] + r.shift[0], xe[1] + r.shift[1]], r.level))
         .sum()
 }
 
@@ -894,39 +925,25 @@ fn mean(stack: &BlurStack, xe: [f64; 2], reads: &[Read]) -> f64 {
 #[inline]
 fn mean_pair(a: &BlurStack, b: &BlurStack, xe: [f64; 2], reads: &[Read]) -> (f64, f64) {
     reads.iter().fold((0.0, 0.0), |(sa, sb), r| {
-        let taps = a.taps_at([xe[0] + r.shift[0], xe[1] + r.shift[1]], r.level);
-        (sa + r.share * a.read(&taps), sb + r.share * b.read(&taps))
+        let [va, vb] = a.read_pair_at(b, [xe[0] + r.shift[0], xe[1] + r.shift[1]], r.level);
+        (sa + r.share * va, sb + r.share * vb)
     })
 }
 
-/// [`scatter`] of two weights into two node buffers of stacks on the grid
-/// of `stack`, the taps shared.
+/// Adds g_k·∂(planned mean)/∂node into `buffers[k]`, for stacks on the
+/// grid of `stack`.
 #[inline]
-fn scatter_pair(
+fn scatter<const N: usize>(
     stack: &BlurStack,
     xe: [f64; 2],
     reads: &[Read],
-    g: [f64; 2],
-    nodes: [&mut [f64]; 2],
+    g: [f64; N],
+    mut buffers: [&mut [f64]; N],
 ) {
-    let [na, nb] = nodes;
     for r in reads {
-        let taps = stack.taps_at([xe[0] + r.shift[0], xe[1] + r.shift[1]], r.level);
-        for (n, w) in taps {
-            na[n as usize] += g[0] * r.share * w;
-            nb[n as usize] += g[1] * r.share * w;
-        }
-    }
-}
-
-/// Adds g·∂(planned mean)/∂node into `nodes`.
-#[inline]
-fn scatter(stack: &BlurStack, xe: [f64; 2], reads: &[Read], g: f64, nodes: &mut [f64]) {
-    for r in reads {
-        let taps = stack.taps_at([xe[0] + r.shift[0], xe[1] + r.shift[1]], r.level);
-        for (n, w) in taps {
-            nodes[n as usize] += g * r.share * w;
-        }
+        let mu = [xe[0] + r.shift[0], xe[1] + r.shift[1]];
+        let bufs = buffers.each_mut().map(|b| &mut **b);
+        stack.scatter_at(mu, r.level, g.map(|v| v * r.share), bufs);
     }
 }
 
