@@ -397,8 +397,9 @@ impl BlurStack {
         Self::reads_at([self, other], mu, levels)
     }
 
-    /// The adjoint of [`Self::reads_at`]: adds g_k·∂(read)/∂node into
-    /// `buffers[k]` (node buffers of [`Self::len`] values) for each k.
+    /// The adjoint of [`Self::read_at`] and [`Self::read_pair_at`]: adds
+    /// g_k·∂(read)/∂node into `buffers[k]` (node buffers of [`Self::len`]
+    /// values) for each k.
     #[inline]
     pub fn scatter_at<const N: usize>(
         &self,
