@@ -352,6 +352,12 @@ struct DesignArgs {
     /// Pixels per side of the validation images.
     #[arg(long, default_value_t = 64)]
     validate_resolution: usize,
+    /// Calibrate the forward model by brute force with this many reference
+    /// paths (e.g. 1e8): one render of the design, the model's bias per
+    /// albedo measured from it, and the design again for the target
+    /// corrected by that bias (on the validation's pixel grid).
+    #[arg(long, value_parser = parse_count)]
+    calibrate: Option<u64>,
     #[arg(long, default_value_t = 1)]
     seed: u64,
     #[command(flatten)]
@@ -386,6 +392,7 @@ fn design(a: DesignArgs) -> Result<()> {
         settings,
         validate: a.validate,
         validate_resolution: a.validate_resolution,
+        calibrate: a.calibrate,
         seed: a.seed,
         models: a.models.load()?,
         progress: true,
@@ -407,6 +414,21 @@ fn design(a: DesignArgs) -> Result<()> {
         100.0 * doc.model_naive_rel_rmse,
         100.0 * doc.model_designed_rel_rmse
     );
+    if let Some(c) = &doc.calibration {
+        println!(
+            "calibrated by brute force ({} paths); brute force ÷ model per albedo bin:",
+            c.paths
+        );
+        for (k, t) in c.channels.iter().enumerate() {
+            let bins: Vec<String> = t
+                .albedo
+                .iter()
+                .zip(&t.ratio)
+                .map(|(a, r)| format!("{a:.3}: {r:.3}"))
+                .collect();
+            println!("  channel {k}: {}", bins.join(", "));
+        }
+    }
     if let Some(v) = &doc.validation {
         println!(
             "brute force ({} paths per map, {}² pixels, reference noise {:.1} %):",

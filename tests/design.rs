@@ -43,6 +43,7 @@ fn options(target: PathBuf, out: PathBuf, validate: Option<u64>) -> DesignOption
         },
         validate,
         validate_resolution: 12,
+        calibrate: None,
         seed: 3,
         models: Models::builtin().unwrap(),
         progress: false,
@@ -79,6 +80,34 @@ fn design_writes_its_files_and_validates_by_brute_force() {
         serde_json::from_slice(&std::fs::read(out.join("design.json")).unwrap()).unwrap();
     assert_eq!(json["format"], "svkernel-design");
     assert!(json["history"].as_array().unwrap().len() >= 5);
+}
+
+#[test]
+fn a_calibrated_design_asks_the_model_for_its_measured_bias() {
+    let d = dir("calibrate");
+    let t = d.join("target.npy");
+    target(&t);
+    let out = d.join("out");
+    let mut opts = options(t.clone(), out.clone(), None);
+    opts.calibrate = Some(4_000_000);
+    let doc = run(&opts).unwrap();
+    let c = doc.calibration.expect("calibrated");
+    let table = &c.channels[0];
+    assert!(!table.ratio.is_empty());
+    assert!(table.albedo.windows(2).all(|w| w[0] < w[1]));
+    // The model's bias on a soft target is a few per cent, not more.
+    assert!(
+        table.ratio.iter().all(|r| (0.8..1.25).contains(r)),
+        "{table:?}"
+    );
+    // The design ran twice: once for the target, once for the corrected one.
+    let uncalibrated = run(&options(t, d.join("plain"), None)).unwrap();
+    assert_eq!(doc.shape, uncalibrated.shape);
+    assert!(doc.evaluations > uncalibrated.evaluations);
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("design.json")).unwrap()).unwrap();
+    assert_eq!(json["calibration"]["paths"], 4_000_000);
+    assert!(!d.join(".out.partial").exists());
 }
 
 #[test]

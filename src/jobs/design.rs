@@ -25,6 +25,20 @@
 //! own noise subtracted) and the mean CIEDE2000 difference (Sharma, Wu &
 //! Dalal 2005; the `palette` crate) of the linear reflectances read as
 //! linear sRGB.
+//!
+//! # Calibration
+//! The model's remaining bias is a function of the texture and the
+//! albedo, and a design cannot see it. With `calibrate`, one brute-force
+//! render of the design (same light and pixel grid as the validation)
+//! measures it: per channel, the interior pixels are binned by their
+//! designed albedo ([`CALIBRATION_BINS`] bins of equal count) and each bin
+//! gets the ratio c = Σ brute force / Σ model. The design is then run
+//! again for the target T/c(α₁) at each texel (α₁ its first-design
+//! albedo, c linear between the bins' mean albedos): where the model is
+//! too bright by c, it is asked for that much more. This is one step of
+//! defect correction with the brute-force walk; the designs with `point`
+//! and `factorized` that the validation compares are calibrated the same
+//! way.
 
 use super::output::{diverging, srgb, to_u8, write_png_bytes_wh};
 use super::plot::{Axes, Series, chart};
@@ -55,6 +69,9 @@ pub struct DesignOptions {
     pub settings: Settings,
     /// Reference paths per validated map; `None`: no validation.
     pub validate: Option<u64>,
+    /// Reference paths of the calibration render; `None`: no calibration
+    /// ([module docs](self)).
+    pub calibrate: Option<u64>,
     /// Pixels per side of the validation images (over the texture).
     pub validate_resolution: usize,
     pub seed: u64,
@@ -144,6 +161,8 @@ pub struct DesignDoc {
     /// target, whole texture): naive and designed.
     pub model_naive_rel_rmse: f64,
     pub model_designed_rel_rmse: f64,
+    /// The brute-force calibration of the model's bias, if asked for.
+    pub calibration: Option<Calibration>,
     pub validation: Option<Validation>,
     pub provenance: Provenance,
 }
@@ -154,7 +173,7 @@ pub fn run(opts: &DesignOptions) -> Result<DesignDoc> {
     let s = &opts.settings;
     let (target, nx, ny) = load_target(opts)?;
     let staging = staging_dir(&opts.out)?;
-    let designed = design_with(opts, &staging, s, &target, nx, ny)?;
+    let (designed, calibration) = design_calibrated(opts, &staging, s, &target, nx, ny)?;
     let mut validation = None;
     if let Some(paths) = opts.validate {
         validation = Some(validate(opts, &staging, &target, nx, ny, &designed, paths)?);
@@ -185,6 +204,7 @@ pub fn run(opts: &DesignOptions) -> Result<DesignDoc> {
         stops: designed.stops.clone(),
         model_naive_rel_rmse: rel_rmse(&flat(&designed.predicted_naive), &t, None),
         model_designed_rel_rmse: rel_rmse(&flat(&designed.predicted), &t, None),
+        calibration,
         validation,
         provenance: Provenance::current(),
     };
@@ -301,6 +321,154 @@ fn design_with(
     ))
 }
 
+/// The brute-force calibration of a forward model's bias ([module
+/// docs](self)).
+#[derive(Clone, Debug, Serialize)]
+pub struct Calibration {
+    pub paths: u64,
+    /// Per channel, the brute-force over model ratio per albedo bin.
+    pub channels: Vec<CalibrationTable>,
+    pub seconds: f64,
+}
+
+/// One channel's calibration: per bin of the first design's pixel albedos
+/// (equal pixel counts, [`CALIBRATION_BINS`]), their mean albedo, the
+/// ratio Σ brute force / Σ model over their pixels, and their number.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct CalibrationTable {
+    pub albedo: Vec<f64>,
+    pub ratio: Vec<f64>,
+    pub pixels: Vec<usize>,
+}
+
+/// Bins of a [`CalibrationTable`].
+pub const CALIBRATION_BINS: usize = 8;
+
+impl CalibrationTable {
+    /// The bins of `(albedo, brute force, model)` per pixel: sorted by
+    /// albedo, cut into [`CALIBRATION_BINS`] runs of equal count (bins
+    /// whose mean albedos lie within 1e-6 of each other pooled).
+    pub fn fit(mut pixels: Vec<(f64, f64, f64)>) -> CalibrationTable {
+        pixels.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let n = pixels.len();
+        let mut t = CalibrationTable {
+            albedo: Vec::new(),
+            ratio: Vec::new(),
+            pixels: Vec::new(),
+        };
+        let mut sums: Vec<[f64; 4]> = Vec::new();
+        for b in 0..CALIBRATION_BINS.min(n) {
+            let run =
+                &pixels[b * n / CALIBRATION_BINS.min(n)..(b + 1) * n / CALIBRATION_BINS.min(n)];
+            let s = run.iter().fold([0.0; 4], |s, p| {
+                [s[0] + p.0, s[1] + p.1, s[2] + p.2, s[3] + 1.0]
+            });
+            match sums.last_mut() {
+                Some(last) if (s[0] / s[3] - last[0] / last[3]).abs() <= 1e-6 => {
+                    for (a, v) in last.iter_mut().zip(s) {
+                        *a += v;
+                    }
+                }
+                _ => sums.push(s),
+            }
+        }
+        for s in sums {
+            t.albedo.push(s[0] / s[3]);
+            t.ratio.push(if s[2] > 0.0 { s[1] / s[2] } else { 1.0 });
+            t.pixels.push(s[3] as usize);
+        }
+        t
+    }
+
+    /// The ratio at albedo `a`: linear between the bins' mean albedos,
+    /// flat beyond them (1 without bins).
+    pub fn at(&self, a: f64) -> f64 {
+        let (x, y) = (&self.albedo, &self.ratio);
+        match x.len() {
+            0 => 1.0,
+            _ if a <= x[0] => y[0],
+            n if a >= x[n - 1] => y[n - 1],
+            _ => {
+                let k = x.partition_point(|&v| v <= a) - 1;
+                y[k] + (a - x[k]) / (x[k + 1] - x[k]) * (y[k + 1] - y[k])
+            }
+        }
+    }
+}
+
+/// The design with settings `s`, calibrated by brute force when
+/// `opts.calibrate` asks for it ([module docs](self)): the design, one
+/// brute-force render of it, the ratio of that render to the model's
+/// appearance per albedo bin, and the design again for the target divided
+/// by that ratio at each texel's first-design albedo. The naive map and
+/// its appearance stay the original target's; `predicted` is the
+/// calibrated model's, ratio × model.
+fn design_calibrated(
+    opts: &DesignOptions,
+    staging: &Path,
+    s: &Settings,
+    target: &[Vec<f64>],
+    nx: usize,
+    ny: usize,
+) -> Result<(Design, Option<Calibration>)> {
+    let first = design_with(opts, staging, s, target, nx, ny)?;
+    let Some(paths) = opts.calibrate else {
+        return Ok((first, None));
+    };
+    let start = Instant::now();
+    let grid = Grid::new(opts, nx, ny)?;
+    let maps: Vec<&Vec<f64>> = first.albedo.iter().collect();
+    let light_radius = grid.light_radius(opts, &maps, nx, ny);
+    let geometry = (grid.res, grid.half_width, light_radius, paths);
+    let tag = format!("calibrate-{}", s.method.name());
+    let (brute, _) = reference_image(opts, staging, &tag, &first.albedo, (nx, ny), geometry)?;
+    let tables: Vec<CalibrationTable> = (0..target.len())
+        .map(|c| {
+            let (a, m) = (
+                grid.pixels(&first.albedo[c], nx, ny),
+                grid.pixels(&first.predicted[c], nx, ny),
+            );
+            CalibrationTable::fit(
+                grid.keep
+                    .iter()
+                    .map(|&k| (a[k], brute[c][k], m[k]))
+                    .collect(),
+            )
+        })
+        .collect();
+    let calibrated: Vec<Vec<f64>> = target
+        .iter()
+        .zip(&first.albedo)
+        .zip(&tables)
+        .map(|((t, a), table)| {
+            t.iter()
+                .zip(a)
+                .map(|(t, a)| (t / table.at(*a)).clamp(0.0, 1.0))
+                .collect()
+        })
+        .collect();
+    let seconds = start.elapsed().as_secs_f64();
+    let mut d = design_with(opts, staging, s, &calibrated, nx, ny)?;
+    for ((p, a), table) in d.predicted.iter_mut().zip(&d.albedo).zip(&tables) {
+        for (p, a) in p.iter_mut().zip(a) {
+            *p *= table.at(*a);
+        }
+    }
+    d.naive = first.naive;
+    d.predicted_naive = first.predicted_naive;
+    d.evaluations += first.evaluations;
+    d.solve_seconds += first.solve_seconds;
+    d.setup_seconds += first.setup_seconds;
+    Ok((
+        d,
+        Some(Calibration {
+            paths,
+            channels: tables,
+            seconds,
+        }),
+    ))
+}
+
 /// A finished channel in the staging folder.
 #[derive(Serialize, serde::Deserialize)]
 struct ChannelCheckpoint {
@@ -388,6 +556,111 @@ fn reference_image(
     Ok((split(&img.mean), split(&img.stderr)))
 }
 
+/// The validation's pixel grid over the texture: `res²` pixels of `f × f`
+/// texels, the image's half-width, and the interior pixels (row-major
+/// indices; those further than `margin` MFP inside the texture's edge).
+struct Grid {
+    res: usize,
+    f: usize,
+    half_width: f64,
+    texel: f64,
+    margin: f64,
+    keep: Vec<usize>,
+}
+
+impl Grid {
+    fn new(opts: &DesignOptions, nx: usize, ny: usize) -> Result<Grid> {
+        let texel = opts.settings.texel;
+        let side = nx.max(ny);
+        let f = side.div_ceil(opts.validate_resolution.max(1)).max(1);
+        let res = side.div_ceil(f);
+        let half_width = 0.5 * (res * f) as f64 * texel;
+        let h = 2.0 * half_width / res as f64;
+        let margin = 0.5;
+        let (tx, ty) = (0.5 * nx as f64 * texel, 0.5 * ny as f64 * texel);
+        let keep: Vec<usize> = (0..res * res)
+            .filter(|k| {
+                let (i, j) = (k / res, k % res);
+                let (x0, y1) = (-half_width + j as f64 * h, half_width - i as f64 * h);
+                let (x1, y0) = (x0 + h, y1 - h);
+                x0 >= -tx + margin && x1 <= tx - margin && y0 >= -ty + margin && y1 <= ty - margin
+            })
+            .collect();
+        if keep.is_empty() {
+            return Err(Error::param(
+                "validate-resolution",
+                opts.validate_resolution,
+                "pixels inside the texture's interior (a texture wider than 1 MFP)",
+            ));
+        }
+        Ok(Grid {
+            res,
+            f,
+            half_width,
+            texel,
+            margin,
+            keep,
+        })
+    }
+
+    /// Per pixel, the mean of the texel values `map` (row-major `ny × nx`,
+    /// edge texels extended) over its `f × f` texels.
+    fn pixels(&self, map: &[f64], nx: usize, ny: usize) -> Vec<f64> {
+        let (res, f, tau) = (self.res, self.f, self.texel);
+        let h = 2.0 * self.half_width / res as f64;
+        (0..res * res)
+            .map(|k| {
+                let (x0, y1) = (
+                    -self.half_width + (k % res) as f64 * h,
+                    self.half_width - (k / res) as f64 * h,
+                );
+                let mut sum = 0.0;
+                for a in 0..f {
+                    for b in 0..f {
+                        let x = x0 + (b as f64 + 0.5) * h / f as f64;
+                        let y = y1 - (a as f64 + 0.5) * h / f as f64;
+                        let jj =
+                            ((x / tau + 0.5 * nx as f64).floor().max(0.0) as usize).min(nx - 1);
+                        let ii =
+                            ((0.5 * ny as f64 - y / tau).floor().max(0.0) as usize).min(ny - 1);
+                        sum += map[ii * nx + jj];
+                    }
+                }
+                sum / (f * f) as f64
+            })
+            .collect()
+    }
+
+    /// The light's radius (MFP) for rendering `maps` on this grid: the
+    /// settings' disk, or under uniform light a disk reaching 4 diffusion
+    /// lengths 1/σ_tr beyond the image for the largest albedo on the maps'
+    /// edges (σ_tr = √(3σ_a σ_t′), unit σ_t; beyond the texture the medium
+    /// is its edge texels extended): light from further out contributes
+    /// < 1 % of the reflectance there.
+    fn light_radius(&self, opts: &DesignOptions, maps: &[&Vec<f64>], nx: usize, ny: usize) -> f64 {
+        let alpha_max = maps
+            .iter()
+            .flat_map(|m| {
+                (0..nx * ny)
+                    .filter(|k| {
+                        let (i, j) = (k / nx, k % nx);
+                        i == 0 || j == 0 || i + 1 == ny || j + 1 == nx
+                    })
+                    .map(|k| m[k])
+            })
+            .fold(0.0f64, f64::max);
+        let g = opts.models.meta.g;
+        let sigma_tr = (3.0 * (1.0 - alpha_max) * (1.0 - alpha_max * g))
+            .sqrt()
+            .max(1e-3);
+        let reach = (4.0 / sigma_tr).min(40.0);
+        match opts.settings.illumination {
+            Illumination::Uniform => self.half_width * std::f64::consts::SQRT_2 + reach,
+            Illumination::Disk(r) => r,
+        }
+    }
+}
+
 /// The brute-force validation ([module docs](self)).
 fn validate(
     opts: &DesignOptions,
@@ -400,79 +673,15 @@ fn validate(
 ) -> Result<Validation> {
     let start = Instant::now();
     let s = &opts.settings;
-    let side = nx.max(ny);
-    let f = side.div_ceil(opts.validate_resolution.max(1)).max(1);
-    let res = side.div_ceil(f);
-    let half_width = 0.5 * (res * f) as f64 * s.texel;
-    // Beyond the texture the medium is its edge texels extended; the light
-    // reaches 4 diffusion lengths 1/σ_tr beyond the image for the largest
-    // albedo on the edges of the maps (σ_tr = √(3σ_a σ_t′), unit σ_t):
-    // light from further out contributes < 1 % of the reflectance there.
-    let edge = |m: &Vec<f64>| -> Vec<f64> {
-        (0..nx * ny)
-            .filter(|k| {
-                let (i, j) = (k / nx, k % nx);
-                i == 0 || j == 0 || i + 1 == ny || j + 1 == nx
-            })
-            .map(|k| m[k])
-            .collect()
-    };
-    let alpha_max = designed
-        .albedo
-        .iter()
-        .chain(&designed.naive)
-        .flat_map(edge)
-        .fold(0.0f64, f64::max);
-    let g = opts.models.meta.g;
-    let sigma_tr = (3.0 * (1.0 - alpha_max) * (1.0 - alpha_max * g))
-        .sqrt()
-        .max(1e-3);
-    let reach = (4.0 / sigma_tr).min(40.0);
-    let light_radius = match s.illumination {
-        Illumination::Uniform => half_width * std::f64::consts::SQRT_2 + reach,
-        Illumination::Disk(r) => r,
-    };
-    // Target per validation pixel: the mean of its texels.
-    let h = 2.0 * half_width / res as f64;
-    let margin = 0.5;
-    let mut keep = Vec::new();
-    let mut target_full: Vec<Vec<f64>> = vec![vec![0.0; res * res]; target.len()];
-    let (tx, ty) = (0.5 * nx as f64 * s.texel, 0.5 * ny as f64 * s.texel);
-    for i in 0..res {
-        for j in 0..res {
-            let (x0, y1) = (-half_width + j as f64 * h, half_width - i as f64 * h);
-            let (x1, y0) = (x0 + h, y1 - h);
-            if x0 >= -tx + margin && x1 <= tx - margin && y0 >= -ty + margin && y1 <= ty - margin {
-                keep.push(i * res + j);
-            }
-            for (c, t) in target.iter().enumerate() {
-                let mut sum = 0.0;
-                for a in 0..f {
-                    for b in 0..f {
-                        let x = x0 + (b as f64 + 0.5) * h / f as f64;
-                        let y = y1 - (a as f64 + 0.5) * h / f as f64;
-                        let jj =
-                            ((x / s.texel + 0.5 * nx as f64).floor().max(0.0) as usize).min(nx - 1);
-                        let ii =
-                            ((0.5 * ny as f64 - y / s.texel).floor().max(0.0) as usize).min(ny - 1);
-                        sum += t[ii * nx + jj];
-                    }
-                }
-                target_full[c][i * res + j] = sum / (f * f) as f64;
-            }
-        }
-    }
+    let grid = Grid::new(opts, nx, ny)?;
+    let maps: Vec<&Vec<f64>> = designed.albedo.iter().chain(&designed.naive).collect();
+    let light_radius = grid.light_radius(opts, &maps, nx, ny);
+    let (res, half_width, keep, margin) = (grid.res, grid.half_width, &grid.keep, grid.margin);
+    let target_full: Vec<Vec<f64>> = target.iter().map(|t| grid.pixels(t, nx, ny)).collect();
     let target_px: Vec<Vec<f64>> = target_full
         .iter()
         .map(|c| keep.iter().map(|&k| c[k]).collect())
         .collect();
-    if keep.is_empty() {
-        return Err(Error::param(
-            "validate-resolution",
-            opts.validate_resolution,
-            "pixels inside the texture's interior (a texture wider than 1 MFP)",
-        ));
-    }
     let geometry = (res, half_width, light_radius, paths);
     let errors = |mean: &[Vec<f64>], err: &[Vec<f64>]| -> Errors {
         let pick = |v: &[Vec<f64>]| -> Vec<Vec<f64>> {
@@ -504,7 +713,7 @@ fn validate(
         } else {
             let mut other = s.clone();
             other.method = method;
-            let d = design_with(opts, staging, &other, target, nx, ny)?;
+            let (d, _) = design_calibrated(opts, staging, &other, target, nx, ny)?;
             (d.albedo, d.solve_seconds)
         };
         let (m, e) = reference_image(opts, staging, method.name(), &maps, (nx, ny), geometry)?;
@@ -719,6 +928,41 @@ fn write_outputs(
         "design.json",
         "report.html",
     ];
+    if let Some(c) = &doc.calibration {
+        blocks.push(Block::Heading(2, "Calibration by brute force".into()));
+        blocks.push(Block::Para(format!(
+            "One reference render of the first design ({} paths, the validation's light and \
+             pixels) against the model's appearance of it, per bin of the designed albedo \
+             (equal pixel counts, interior pixels); the design was run again for the target \
+             divided by the ratio at each texel's first-design albedo. The model's appearance \
+             above is the calibrated one (ratio × model). {:.0} s.",
+            c.paths, c.seconds
+        )));
+        let rows = c
+            .channels
+            .iter()
+            .enumerate()
+            .flat_map(|(k, t)| {
+                (0..t.albedo.len()).map(move |b| {
+                    vec![
+                        k.to_string(),
+                        format!("{:.3}", t.albedo[b]),
+                        t.pixels[b].to_string(),
+                        format!("{:.3}", t.ratio[b]),
+                    ]
+                })
+            })
+            .collect();
+        blocks.push(Block::table(
+            &[
+                "channel",
+                "mean designed albedo",
+                "pixels",
+                "brute force ÷ model",
+            ],
+            rows,
+        ));
+    }
     if let Some(v) = &doc.validation {
         let r = v.resolution;
         let im = &v.images;
@@ -801,4 +1045,38 @@ fn write_outputs(
     }
     std::fs::remove_dir_all(staging).map_err(|e| Error::io(staging, e))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_calibration_table_bins_by_albedo_and_interpolates() {
+        // Pixels at albedo 0.5 (brute force 0.9 × model) and 0.9 (1.1 ×),
+        // half each; the bins pool where their albedos coincide.
+        let pixels: Vec<(f64, f64, f64)> = (0..80)
+            .map(|k| {
+                let (a, r) = if k % 2 == 0 { (0.5, 0.9) } else { (0.9, 1.1) };
+                let m = 0.1 + 0.001 * k as f64;
+                (a, r * m, m)
+            })
+            .collect();
+        let t = CalibrationTable::fit(pixels);
+        assert_eq!(t.albedo.len(), 2, "{t:?}");
+        assert_eq!(t.pixels, vec![40, 40]);
+        assert!((t.ratio[0] - 0.9).abs() < 1e-12 && (t.ratio[1] - 1.1).abs() < 1e-12);
+        assert!((t.at(0.7) - 1.0).abs() < 1e-12, "halfway: {}", t.at(0.7));
+        assert_eq!(t.at(0.1), t.ratio[0]);
+        assert_eq!(t.at(0.99), t.ratio[1]);
+        // Distinct albedos: CALIBRATION_BINS bins of equal count, in order.
+        let spread: Vec<(f64, f64, f64)> = (0..100)
+            .map(|k| (0.2 + 0.007 * k as f64, 1.0, 1.0))
+            .collect();
+        let t = CalibrationTable::fit(spread);
+        assert_eq!(t.albedo.len(), CALIBRATION_BINS);
+        assert!(t.albedo.windows(2).all(|w| w[0] < w[1]));
+        assert_eq!(t.pixels.iter().sum::<usize>(), 100);
+        assert_eq!(CalibrationTable::fit(Vec::new()).at(0.5), 1.0);
+    }
 }
