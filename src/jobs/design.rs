@@ -849,37 +849,45 @@ fn write_outputs(
     )?;
     let cell = |caption: &str, name: &str| Some((caption.to_string(), p(name)));
     let mut blocks = vec![
-        Block::Para(format!(
-            "Target `{}` ({ny} × {nx}, {} channel(s)), texel {} MFP, albedo range [{}, {}], \
+        Block::Para(
+            format!(
+                "Target `{}` ({ny} × {nx}, {} channel(s)), texel {} MFP, albedo range [{}, {}], \
              {} illumination, forward model `{}`. {} of at most {} relaxed fixed-point steps \
              over all channels (a step that raises F is undone and halves the relaxation; \
              each channel stops when it falls below {} or a step gains less than {} %), then \
              {} L-BFGS-B iterations per channel{}, in {:.1} s ({} model evaluations), \
              set-up {:.1} s.",
-            opts.target.display(),
-            target.len(),
-            doc.texel,
-            doc.albedo_range[0],
-            doc.albedo_range[1],
-            doc.illumination,
-            doc.method,
-            doc.history
-                .iter()
-                .filter(|h| h.stage == crate::design::Stage::FixedPoint)
-                .count(),
-            doc.warm_start * target.len(),
-            crate::design::MIN_RELAXATION,
-            100.0 * crate::design::MIN_GAIN,
-            doc.iterations,
-            if doc.method == Method::Learned.name() {
-                " from the kernel shapes re-anchored at the warm start's map (F jumps there)"
+                opts.target.display(),
+                target.len(),
+                doc.texel,
+                doc.albedo_range[0],
+                doc.albedo_range[1],
+                doc.illumination,
+                doc.method,
+                doc.history
+                    .iter()
+                    .filter(|h| h.stage == crate::design::Stage::FixedPoint)
+                    .count(),
+                doc.warm_start * target.len(),
+                crate::design::MIN_RELAXATION,
+                100.0 * crate::design::MIN_GAIN,
+                doc.iterations,
+                if doc.method == Method::Learned.name() {
+                    " from the kernel shapes re-anchored at the warm start's map (F jumps there)"
+                } else {
+                    ""
+                },
+                doc.solve_s,
+                doc.evaluations,
+                doc.setup_s,
+            ) + if doc.calibration.is_some() {
+                " Calibrated (below): the design ran twice, for the target and for the \
+             corrected one; the steps and the convergence plot are the second run's, the time \
+             and the evaluations both runs'."
             } else {
                 ""
             },
-            doc.solve_s,
-            doc.evaluations,
-            doc.setup_s,
-        )),
+        ),
         Block::Heading(2, "Maps".into()),
         Block::Grid {
             rows: vec![vec![
