@@ -792,48 +792,45 @@ impl Appearance {
         let ae = alpha[e];
         let b = &*self.basis;
         let n_k = self.offsets.len();
-        {
-            let ai = alpha[self.texel_of(xi)];
-            let r = off.d.max(R_MIN);
-            let profile = |a: f64| {
-                let (mm, dm) = self.norm.multi(b, r, a);
-                let v = a * off.single + a * a * mm;
-                (v, off.single + 2.0 * a * mm + a * a * dm)
-            };
-            let (s, d) = match self.method {
-                Method::Point => {
-                    let (s, ds) = profile(ae);
-                    (s, [0.0, ds, 0.0, 0.0, 0.0, 0.0])
-                }
-                Method::Factorized => {
-                    let ((ri, dri), (re, dre)) = (profile(ai), profile(ae));
-                    let s = (ri * re).max(0.0).sqrt();
-                    let h = if s > 0.0 { 0.5 / s } else { 0.0 };
-                    (s, [h * dri * re, h * ri * dre, 0.0, 0.0, 0.0, 0.0])
-                }
-                _ => {
-                    let (Some(k), Some(stack)) = (&self.kernels, stack) else {
-                        unreachable!("learned is built with its kernels")
-                    };
-                    let [b0, b1] = anchor.bins[e * n_k + o];
-                    let (at, y) = self.total(stack, xe, k.all.get(o, b1));
-                    let le = mean(&stack.alpha, xe, k.last.get(o, b0));
-                    let first = k.first.as_ref().map(|f| f.get(o, b0));
-                    let li = first.map_or(ai, |f| mean(&stack.alpha, xe, f));
-                    let t = at.clamp(0.0, 1.0);
-                    let (mm, dm) = self.norm.multi(b, r, t);
-                    let s = ai * off.single + li * le * mm;
-                    // l_i is the point albedo without a first-vertex model.
-                    let (c_i, c_li) = match first {
-                        None => (off.single + le * mm, 0.0),
-                        Some(_) => (off.single, le * mm),
-                    };
-                    let c_t = if at == t { li * le * dm } else { 0.0 };
-                    let c_y = c_t * self.space.inverse_derivative(y);
-                    (s, [c_i, 0.0, c_t, li * mm, c_li, c_y])
-                }
-            };
-            (s, d)
+        let ai = alpha[self.texel_of(xi)];
+        let r = off.d.max(R_MIN);
+        let profile = |a: f64| {
+            let (mm, dm) = self.norm.multi(b, r, a);
+            let v = a * off.single + a * a * mm;
+            (v, off.single + 2.0 * a * mm + a * a * dm)
+        };
+        match self.method {
+            Method::Point => {
+                let (s, ds) = profile(ae);
+                (s, [0.0, ds, 0.0, 0.0, 0.0, 0.0])
+            }
+            Method::Factorized => {
+                let ((ri, dri), (re, dre)) = (profile(ai), profile(ae));
+                let s = (ri * re).max(0.0).sqrt();
+                let h = if s > 0.0 { 0.5 / s } else { 0.0 };
+                (s, [h * dri * re, h * ri * dre, 0.0, 0.0, 0.0, 0.0])
+            }
+            _ => {
+                let (Some(k), Some(stack)) = (&self.kernels, stack) else {
+                    unreachable!("learned is built with its kernels")
+                };
+                let [b0, b1] = anchor.bins[e * n_k + o];
+                let (at, y) = self.total(stack, xe, k.all.get(o, b1));
+                let le = mean(&stack.alpha, xe, k.last.get(o, b0));
+                let first = k.first.as_ref().map(|f| f.get(o, b0));
+                let li = first.map_or(ai, |f| mean(&stack.alpha, xe, f));
+                let t = at.clamp(0.0, 1.0);
+                let (mm, dm) = self.norm.multi(b, r, t);
+                let s = ai * off.single + li * le * mm;
+                // l_i is the point albedo without a first-vertex model.
+                let (c_i, c_li) = match first {
+                    None => (off.single + le * mm, 0.0),
+                    Some(_) => (off.single, le * mm),
+                };
+                let c_t = if at == t { li * le * dm } else { 0.0 };
+                let c_y = c_t * self.space.inverse_derivative(y);
+                (s, [c_i, 0.0, c_t, li * mm, c_li, c_y])
+            }
         }
     }
 }
