@@ -507,8 +507,42 @@ impl RadialSampler {
 /// `importance`).
 pub const ARC_BINS: usize = 32;
 
-/// Bisection steps that place a bound between two bins of the albedo guide.
-const ARC_BISECTIONS: usize = 6;
+/// Where a segment from (x0, y0) to (x1, y1) in texel units (texel (i, j)
+/// covers [j, j + 1) × [i, i + 1) in (x, y)) first enters a texel on the
+/// far side of a step: its texel boundary crossings in order (a 2-D DDA,
+/// Amanatides & Woo 1987), each tested by `beyond` at the middle of the
+/// piece it starts; the parameter t ∈ [0, 1] of the first crossing whose
+/// piece is beyond, else 0.5. Exact where a bisection would be a guess, and
+/// one texel read per texel crossed.
+fn first_step(x0: f64, y0: f64, x1: f64, y1: f64, beyond: impl Fn(f64) -> bool) -> f64 {
+    // Crossing parameters along one axis, in order, from the next
+    // integer line the segment meets.
+    let axis = |a: f64, b: f64| -> (f64, f64) {
+        let d = b - a;
+        if d > 0.0 {
+            ((a.floor() + 1.0 - a) / d, 1.0 / d)
+        } else if d < 0.0 {
+            ((a.floor() - a) / d, -1.0 / d)
+        } else {
+            (f64::INFINITY, f64::INFINITY)
+        }
+    };
+    let ((mut tx, dx), (mut ty, dy)) = (axis(x0, x1), axis(y0, y1));
+    let mut t = if tx <= ty { tx } else { ty };
+    while t < 1.0 {
+        if tx <= ty {
+            tx += dx;
+        } else {
+            ty += dy;
+        }
+        let next = tx.min(ty).min(1.0);
+        if beyond(0.5 * (t + next)) {
+            return t;
+        }
+        t = next;
+    }
+    0.5
+}
 
 /// The least step in albedo between two bins (a share of their mean) that
 /// the albedo guide places a bound at.
@@ -545,8 +579,8 @@ const ARC_FLOOR: f64 = 0.05;
 /// w_b = α(x_b) + [`ARC_FLOOR`]·mean(α) at the bin's centre x_b, and φ is
 /// uniform within the bin. Where w differs between neighbouring bins by
 /// more than [`ARC_STEP`] of their mean, the bound between them moves to
-/// where the albedo steps on the chord between their centres (bisection,
-/// [`ARC_BISECTIONS`] steps): a bin is then the arc's run of one albedo,
+/// where the albedo steps on the chord between their centres (its first
+/// texel crossing beyond the step): a bin is then the arc's run of one albedo,
 /// not a fixed slice that straddles an edge. Relative to φ uniform on the
 /// arc the density is multiplied by 2θ·w_b/Σ_k w_k·Δφ_k (Δφ_k the bins'
 /// widths). S of a channel carries that channel's α at x_i (single
@@ -610,25 +644,21 @@ impl ArcGuide {
             // Where the albedo steps between two neighbouring bins (by more
             // than ARC_STEP of their mean), the bound between them moves to
             // where the step lies on the chord between the two centres
-            // (bisection; the chord stands for the arc, whose bins are about
-            // a texel long), so that each bin's weight holds over more of it.
+            // (its first texel crossing beyond the step; the chord stands for
+            // the arc, whose bins are about a texel long), so that each bin's
+            // weight holds over more of it.
             for b in 1..bins {
                 let (w0, w1) = (weight[b - 1], weight[b]);
                 if (w1 - w0).abs() <= ARC_STEP * 0.5 * (w0 + w1) {
                     continue;
                 }
                 let ((u0, v0), (u1, v1)) = (centres[b - 1], centres[b]);
-                let (mut lo, mut hi) = (0.0, 1.0);
-                for _ in 0..ARC_BISECTIONS {
-                    let t = 0.5 * (lo + hi);
-                    let v = map.values[texel(u0 + t * (u1 - u0), v0 + t * (v1 - v0))];
-                    if (v - w0).abs() < (v - w1).abs() {
-                        lo = t;
-                    } else {
-                        hi = t;
-                    }
-                }
-                bounds[b] = start + (b as f64 - 0.5 + 0.5 * (lo + hi)) * width;
+                let at = |t: f64| map.values[texel(u0 + t * (u1 - u0), v0 + t * (v1 - v0))];
+                let t = first_step(cu + u0, cv - v0, cu + u1, cv - v1, |t| {
+                    let v = at(t);
+                    (v - w0).abs() >= (v - w1).abs()
+                });
+                bounds[b] = start + (b as f64 - 0.5 + t) * width;
             }
             let mean = (0..bins)
                 .map(|b| weight[b] * (bounds[b + 1] - bounds[b]))
@@ -1269,8 +1299,8 @@ mod tests {
 
     /// Where the albedo steps between two bins, the guide's bound lies on
     /// the stripe's edge (the stripes of [`striped`] are 0.5 MFP wide in x,
-    /// from x = −1.5): to a small share of a texel, the bisection's
-    /// resolution plus the chord's departure from the arc.
+    /// from x = −1.5): to a small share of a texel, the chord's departure
+    /// from the arc.
     #[test]
     fn the_arc_guide_puts_its_bounds_on_the_albedo_steps() {
         let sv = striped();
