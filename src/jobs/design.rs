@@ -350,19 +350,15 @@ impl CalibrationTable {
     /// whose mean albedos lie within 1e-6 of each other pooled).
     pub fn fit(mut pixels: Vec<(f64, f64, f64)>) -> CalibrationTable {
         pixels.sort_by(|a, b| a.0.total_cmp(&b.0));
-        let n = pixels.len();
-        let mut t = CalibrationTable {
-            albedo: Vec::new(),
-            ratio: Vec::new(),
-            pixels: Vec::new(),
-        };
+        let (n, bins) = (pixels.len(), CALIBRATION_BINS.min(pixels.len()));
+        // Per bin: Σ albedo, Σ brute force, Σ model, count.
         let mut sums: Vec<[f64; 4]> = Vec::new();
-        for b in 0..CALIBRATION_BINS.min(n) {
-            let run =
-                &pixels[b * n / CALIBRATION_BINS.min(n)..(b + 1) * n / CALIBRATION_BINS.min(n)];
-            let s = run.iter().fold([0.0; 4], |s, p| {
-                [s[0] + p.0, s[1] + p.1, s[2] + p.2, s[3] + 1.0]
-            });
+        for b in 0..bins {
+            let s = pixels[b * n / bins..(b + 1) * n / bins]
+                .iter()
+                .fold([0.0; 4], |s, p| {
+                    [s[0] + p.0, s[1] + p.1, s[2] + p.2, s[3] + 1.0]
+                });
             match sums.last_mut() {
                 Some(last) if (s[0] / s[3] - last[0] / last[3]).abs() <= 1e-6 => {
                     for (a, v) in last.iter_mut().zip(s) {
@@ -372,12 +368,14 @@ impl CalibrationTable {
                 _ => sums.push(s),
             }
         }
-        for s in sums {
-            t.albedo.push(s[0] / s[3]);
-            t.ratio.push(if s[2] > 0.0 { s[1] / s[2] } else { 1.0 });
-            t.pixels.push(s[3] as usize);
+        CalibrationTable {
+            albedo: sums.iter().map(|s| s[0] / s[3]).collect(),
+            ratio: sums
+                .iter()
+                .map(|s| if s[2] > 0.0 { s[1] / s[2] } else { 1.0 })
+                .collect(),
+            pixels: sums.iter().map(|s| s[3] as usize).collect(),
         }
-        t
     }
 
     /// The ratio at albedo `a`: linear between the bins' mean albedos,

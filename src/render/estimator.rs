@@ -528,7 +528,7 @@ fn first_step(x0: f64, y0: f64, x1: f64, y1: f64, beyond: impl Fn(f64) -> bool) 
         }
     };
     let ((mut tx, dx), (mut ty, dy)) = (axis(x0, x1), axis(y0, y1));
-    let mut t = if tx <= ty { tx } else { ty };
+    let mut t = tx.min(ty);
     while t < 1.0 {
         if tx <= ty {
             tx += dx;
