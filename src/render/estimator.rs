@@ -16,7 +16,9 @@
 //! * `profile` — x_i = x_e + r(cos φ, sin φ) with r drawn from the
 //!   homogeneous radial profile p(r; α_s, ρ_s) of the basis *truncated to
 //!   the radii that reach the disk*, r ∈ [max(0, D − R), D + R] (D = |x_e|),
-//!   by inverting its closed-form tail (safeguarded Newton), and φ uniform on
+//!   through a table of the profile built once per pixel over the radii
+//!   its windows reach (piecewise exponential, sampled and evaluated
+//!   exactly), and φ uniform on
 //!   the arc of that circle that lies inside the disk (half-angle θ(r) from
 //!   the law of cosines). α_s is the channel-mean albedo around the pixel
 //!   centre, averaged over about a mean free path
@@ -368,14 +370,6 @@ impl RadialSampler {
         self.tail_density(x).1
     }
 
-    /// The r-interval [a, b] (MFP) from which the disk is reachable, and the
-    /// profile mass on it (unit-density integral).
-    #[inline]
-    fn window(&self, dist: f64, radius: f64) -> (f64, f64, f64) {
-        let (a, b) = ((dist - radius).max(0.0), dist + radius);
-        (a, b, self.tail(a * self.rho) - self.tail(b * self.rho))
-    }
-
     /// r ∈ [a, b] from the profile truncated to it: solves
     /// ln tail(ρr) = ln(tail(ρa) − u·mass) by Newton on the logarithm of the
     /// closed-form tail (nearly linear: the tail is a sum of exponentials),
@@ -500,6 +494,153 @@ impl RadialSampler {
     fn entry_window(&self) -> (f64, f64, f64) {
         let b = ENTRY_RADIUS_CUT / self.rho;
         (0.0, b, self.tail(0.0) - self.tail(ENTRY_RADIUS_CUT))
+    }
+}
+
+/// Nodes of a [`RadialTable`].
+const TABLE_NODES: usize = 33;
+
+/// The radial density a pixel's samples are drawn from: the density p(x)
+/// of a [`RadialSampler`]'s profile (x = ρr) tabulated in ln p at
+/// [`TABLE_NODES`] nodes over the optical radii the pixel's windows reach,
+/// x_k = x₀ + (x₁ − x₀)(k/(K − 1))² (denser where the profile falls
+/// fastest), and interpolated linearly in between: a continuous, piecewise
+/// exponential density p_k·e^{−γ_k(x − x_k)} on segment k, whose
+/// cumulative mass is closed-form. It is a density of its own, drawn by
+/// inverting that mass exactly (one logarithm) and evaluated exactly, so
+/// the estimator stays unbiased whatever the tabulation misses; it follows
+/// the profile to within a few per cent (`a_radial_table_follows_its_profile`),
+/// which is all the noise depends on, and being continuous it keeps S/p
+/// free of jumps (which Sobol' points integrate poorly). Built once per
+/// pixel (K evaluations of the profile), it replaces the Newton inversion
+/// (3–4 tail evaluations), the window's two and the density's one per
+/// sample.
+#[derive(Debug)]
+struct RadialTable {
+    rho: f64,
+    /// The nodes x_k (unit-density MFP), p there, the segment rates γ_k
+    /// and the mass below each node, C_k = ∫_{x₀}^{x_k} p.
+    x: [f64; TABLE_NODES],
+    p: [f64; TABLE_NODES],
+    gamma: [f64; TABLE_NODES - 1],
+    cum: [f64; TABLE_NODES],
+}
+
+/// ∫₀^s p·e^{−γt} dt = p·(1 − e^{−γs})/γ (p·s at γs → 0).
+#[inline]
+fn segment_mass(p: f64, gamma: f64, s: f64) -> f64 {
+    let z = gamma * s;
+    if z.abs() < 1e-9 {
+        p * s * (1.0 - 0.5 * z)
+    } else {
+        -p * (-z).exp_m1() / gamma
+    }
+}
+
+impl RadialTable {
+    /// The table of `s` over radii r ∈ [lo, hi] (MFP).
+    fn new(s: &RadialSampler, lo: f64, hi: f64) -> Self {
+        let (x0, x1) = (lo * s.rho, hi.max(lo) * s.rho);
+        let last = (TABLE_NODES - 1) as f64;
+        let x: [f64; TABLE_NODES] = std::array::from_fn(|k| {
+            let t = k as f64 / last;
+            x0 + (x1 - x0) * t * t
+        });
+        let p = x.map(|x| s.density(x).max(f64::MIN_POSITIVE));
+        let mut gamma = [0.0; TABLE_NODES - 1];
+        let mut cum = [0.0; TABLE_NODES];
+        for k in 0..TABLE_NODES - 1 {
+            let h = x[k + 1] - x[k];
+            if h > 0.0 {
+                gamma[k] = (p[k] / p[k + 1]).ln() / h;
+            }
+            cum[k + 1] = cum[k] + segment_mass(p[k], gamma[k], h);
+        }
+        RadialTable {
+            rho: s.rho,
+            x,
+            p,
+            gamma,
+            cum,
+        }
+    }
+
+    /// The segment k of optical radius `x` (x_k ≤ x < x_{k+1}, clamped to
+    /// the table): from the nodes' spacing, then a step either way for
+    /// rounding.
+    #[inline]
+    fn segment(&self, x: f64) -> usize {
+        let (x0, x1) = (self.x[0], self.x[TABLE_NODES - 1]);
+        let last = TABLE_NODES - 2;
+        let t = if x1 > x0 {
+            ((x - x0) / (x1 - x0)).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        let mut k = ((t.sqrt() * (TABLE_NODES - 1) as f64) as usize).min(last);
+        if k > 0 && x < self.x[k] {
+            k -= 1;
+        } else if k < last && x >= self.x[k + 1] {
+            k += 1;
+        }
+        k
+    }
+
+    /// The table's mass below optical radius `x`.
+    #[inline]
+    fn cdf(&self, x: f64) -> f64 {
+        let k = self.segment(x);
+        let s = (x - self.x[k]).clamp(0.0, self.x[k + 1] - self.x[k]);
+        self.cum[k] + segment_mass(self.p[k], self.gamma[k], s)
+    }
+
+    /// The r-interval [a, b] (MFP) from which the disk is reachable (at
+    /// distance `dist` from its centre), and the table's mass on it.
+    #[inline]
+    fn window(&self, dist: f64, radius: f64) -> (f64, f64, f64) {
+        let (a, b) = ((dist - radius).max(0.0), dist + radius);
+        (a, b, self.cdf(b * self.rho) - self.cdf(a * self.rho))
+    }
+
+    /// r ∈ [a, b] drawn from the table truncated to the window, by exact
+    /// inversion of its mass: the segment whose mass brackets the target
+    /// (bisection over the nodes), then within it
+    /// s = −ln(1 − γ·m/p_k)/γ for the mass m still to go.
+    #[inline]
+    fn sample(&self, u: f64, (a, b, mass): (f64, f64, f64)) -> f64 {
+        let (lo, hi) = (a * self.rho, b * self.rho);
+        let target = self.cdf(lo) + u * mass;
+        let k = self
+            .cum
+            .partition_point(|&c| c <= target)
+            .clamp(1, TABLE_NODES - 1)
+            - 1;
+        let (p, g) = (self.p[k], self.gamma[k]);
+        let m = target - self.cum[k];
+        let z = g * m / p;
+        let s = if z.abs() < 1e-9 {
+            m / p * (1.0 + 0.5 * z)
+        } else {
+            -(-z).max(-1.0 + 1e-16).ln_1p() / g
+        };
+        (self.x[k] + s)
+            .clamp(self.x[k], self.x[k + 1])
+            .clamp(lo, hi)
+            / self.rho
+    }
+
+    /// Area pdf (1/MFP²) of x_i at distance r from x_e, arc half-angle θ:
+    /// ρ·p(ρr)/(m·2θr) with the table's p.
+    #[inline]
+    fn area_pdf(&self, r: f64, theta: f64, (a, b, mass): (f64, f64, f64)) -> f64 {
+        if !(r >= a && r <= b) || theta <= 0.0 || mass <= 0.0 {
+            return 0.0;
+        }
+        let r = r.max(R_MIN);
+        let x = r * self.rho;
+        let k = self.segment(x);
+        let p = self.p[k] * (-self.gamma[k] * (x - self.x[k])).exp();
+        self.rho * p / mass / (2.0 * theta * r)
     }
 }
 
@@ -769,11 +910,21 @@ fn pixel(
     let (corner, h) = view.pixel_corner(p / n, p % n);
     let centre = [corner[0] + 0.5 * h, corner[1] + 0.5 * h];
     let needs_is = settings.sampling != Sampling::Uniform;
+    let radius = view.light_radius;
     let sampler = needs_is.then(|| {
         let alpha = sv.sampling_albedo(centre[0], centre[1]);
-        RadialSampler::new(sv, alpha, sv.density_at(centre[0], centre[1]))
+        let profile = RadialSampler::new(sv, alpha, sv.density_at(centre[0], centre[1]));
+        // The radii at which x_e anywhere in the pixel reaches the disk:
+        // from the pixel's nearest point to the centre, less R, to its
+        // farthest corner, plus R.
+        let gap = |lo: f64| (lo.max(0.0)).max(-(lo + h));
+        let near = gap(corner[0]).hypot(gap(corner[1]));
+        let far = corner[0]
+            .abs()
+            .max((corner[0] + h).abs())
+            .hypot(corner[1].abs().max((corner[1] + h).abs()));
+        RadialTable::new(&profile, (near - radius).max(0.0), far + radius)
     });
-    let radius = view.light_radius;
     let p_uniform = 1.0 / (PI * radius * radius);
     let spp = settings.spp as u64;
     let (n_u, n_i) = match settings.sampling {
@@ -830,7 +981,7 @@ fn pixel(
         // What every pass shares: an importance sample's radius, arc and
         // radial density, or a uniform sample's x_i and, for the balance
         // heuristic, the same three of its own radius.
-        let radial = |s: &RadialSampler, w, r: f64| {
+        let radial = |s: &RadialTable, w, r: f64| {
             let theta = arc_half_angle(dist, r, radius);
             (r, theta, s.area_pdf(r, theta, w))
         };
@@ -1029,7 +1180,8 @@ mod tests {
         ] {
             let sv = homogeneous(alpha, rho);
             let s = RadialSampler::new(&sv, alpha, rho);
-            let w = s.window(dist, radius);
+            let (a, b) = (f64::max(dist - radius, 0.0), dist + radius);
+            let w = (a, b, s.tail(a * rho) - s.tail(b * rho));
             // ∫ p_i dA over the disk = ∫ p_i(r)·2θ(r)·r dr = 1.
             let n = 100_000;
             let (a, b) = (w.0, w.1);
@@ -1052,6 +1204,49 @@ mod tests {
                 let r = s.sample(rng.uniform(), w);
                 assert!(r >= a - 1e-12 && r <= b + 1e-12);
                 let f = ((ta - s.tail(r * rho)) / mass).clamp(0.0, 1.0 - 1e-15);
+                counts[(f * bins as f64) as usize] += 1;
+            }
+            let expected = vec![100_000.0 / bins as f64; bins];
+            let (chi2, dof) = crate::testing::chi2_statistic(&counts, &expected);
+            assert!(chi2 < crate::testing::chi2_critical(dof, 1e-4), "{chi2}");
+        }
+    }
+
+    #[test]
+    fn a_radial_table_follows_its_profile() {
+        for (alpha, rho, lo, hi) in [
+            (0.2, 1.0, 0.0, 1.2),
+            (0.9, 1.0, 0.0, 2.2),
+            (0.99, 1.0, 0.0, 2.2),
+            (0.9, 4.0, 0.0, 2.2),
+            (0.9, 0.5, 1.5, 4.2),
+            (0.5, 1.0, 3.0, 5.2f64),
+        ] {
+            let sv = homogeneous(alpha, rho);
+            let s = RadialSampler::new(&sv, alpha, rho);
+            let t = RadialTable::new(&s, lo, hi);
+            // The table's density against the profile's, each normalised
+            // on [lo, hi].
+            let w = (lo, hi, s.tail(lo * rho) - s.tail(hi * rho));
+            let wt = t.window(0.5 * (lo + hi), 0.5 * (hi - lo));
+            let mut worst: f64 = 0.0;
+            for k in 0..2000 {
+                let r = lo + (hi - lo) * (k as f64 + 0.5) / 2000.0;
+                let ratio = t.area_pdf(r, 1.0, wt) / s.area_pdf(r, 1.0, w);
+                worst = worst.max((ratio - 1.0).abs());
+            }
+            // The profile to 1 % (0.4 % measured at ρ = 4, ≤ 0.14 % else).
+            assert!(worst < 0.01, "α {alpha} ρ {rho} [{lo}, {hi}]: {worst}");
+            // Its samples follow its own density: χ² of 1e5 draws in 20
+            // bins of equal table mass, over a window inside the table.
+            let w = t.window(0.5 * (lo + hi), 0.4 * (hi - lo));
+            let c0 = t.cdf(w.0 * rho);
+            let bins = 20;
+            let mut counts = vec![0u64; bins];
+            for k in 0..100_000u64 {
+                let r = t.sample(PathRng::new(9, k).uniform(), w);
+                assert!(r >= w.0 && r <= w.1, "{r} outside {w:?}");
+                let f = ((t.cdf(r * rho) - c0) / w.2).clamp(0.0, 1.0 - 1e-15);
                 counts[(f * bins as f64) as usize] += 1;
             }
             let expected = vec![100_000.0 / bins as f64; bins];
