@@ -62,8 +62,11 @@
 //! # Streams and errors ([`Sequence`])
 //! Whatever the method, sample j of pixel p is made of the same numbers:
 //! all methods see the same x_e, the same x_i and the same strategy, so
-//! only S differs. Each sample takes four numbers in [0, 1): two place x_e
-//! in the pixel, two draw x_i.
+//! only S differs. Each sample takes four numbers in [0, 1): two draw x_i,
+//! two place x_e in the pixel. With Sobol' points x_i takes the first two
+//! dimensions, whose projection is the best stratified (a (0, 2)-sequence),
+//! since S/p varies more with x_i than with x_e: on the canonical scenes
+//! `learned`'s error at 64 spp is 1–4 % lower than with x_e first.
 //! * `sobol` (the default) — randomised quasi-Monte Carlo. Strategy s's
 //!   samples (all of them; with `mis` the odd and the even ones apart) are
 //!   dealt round-robin into [`RANDOMIZATIONS`] (2) blocks, and block k's
@@ -236,7 +239,7 @@ pub enum Sequence {
     Independent,
     /// Randomised quasi-Monte Carlo: per pixel and strategy, 2
     /// independently Owen-scrambled Sobol' sequences (Burley 2020, the
-    /// `sobol_burley` crate) of 4 dimensions (x_e in the pixel, then x_i);
+    /// `sobol_burley` crate) of 4 dimensions (x_i, then x_e in the pixel);
     /// the spread of their means gives the standard error.
     #[default]
     Sobol,
@@ -976,7 +979,7 @@ fn pixel(
                 let (k, index) = (i % RANDOMIZATIONS, i / RANDOMIZATIONS);
                 block = k as usize;
                 let v = sobol_point(settings.seed, p as u64, use_is, k, index);
-                ([corner[0] + h * v[0], corner[1] + h * v[1]], [v[2], v[3]])
+                ([corner[0] + h * v[2], corner[1] + h * v[3]], [v[0], v[1]])
             }
         };
         let dist = xe[0].hypot(xe[1]);
@@ -1092,7 +1095,7 @@ fn randomized_mean(blocks: &[Group], c: usize) -> (f64, f64) {
 
 /// Point `index` of the Owen-scrambled Sobol' sequence of pixel `p`,
 /// strategy `importance` and randomisation `k` under `seed`: 4 numbers in
-/// [0, 1) (x_e's two, then x_i's). The scramble seed hashes (seed, p,
+/// [0, 1) (x_i's two, then x_e's). The scramble seed hashes (seed, p,
 /// strategy, k), so images do not depend on threads or shards. The crate's
 /// values are multiples of 2⁻²³; each is completed by an independent
 /// uniform below that step from [`PathRng`] (keyed by the same tuple and
