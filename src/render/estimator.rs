@@ -1206,21 +1206,28 @@ mod tests {
                 * (b - a)
                 / n as f64;
             assert!((total - 1.0).abs() < 1e-4, "{alpha} {dist}: {total}");
-            // χ² of 1e5 samples in 20 equiprobable bins of the truncated CDF.
-            let bins = 20;
-            let mut counts = vec![0u64; bins];
+            // The samples in equiprobable bins of the truncated CDF.
             let (ta, mass) = (s.tail(a * rho), w.2);
-            for k in 0..100_000u64 {
-                let mut rng = PathRng::new(5, k);
-                let r = s.sample(rng.uniform(), w);
+            assert_cdf_uniform(|k| {
+                let r = s.sample(PathRng::new(5, k).uniform(), w);
                 assert!(r >= a - 1e-12 && r <= b + 1e-12);
-                let f = ((ta - s.tail(r * rho)) / mass).clamp(0.0, 1.0 - 1e-15);
-                counts[(f * bins as f64) as usize] += 1;
-            }
-            let expected = vec![100_000.0 / bins as f64; bins];
-            let (chi2, dof) = crate::testing::chi2_statistic(&counts, &expected);
-            assert!(chi2 < crate::testing::chi2_critical(dof, 1e-4), "{chi2}");
+                (ta - s.tail(r * rho)) / mass
+            });
         }
+    }
+
+    /// χ² of 1e5 draws' CDF values `cdf(k)` (draw k) in 20 equal bins of
+    /// [0, 1]: uniform to the 1e-4 level.
+    fn assert_cdf_uniform(cdf: impl Fn(u64) -> f64) {
+        let bins = 20;
+        let mut counts = vec![0u64; bins];
+        for k in 0..100_000u64 {
+            let f = cdf(k).clamp(0.0, 1.0 - 1e-15);
+            counts[(f * bins as f64) as usize] += 1;
+        }
+        let expected = vec![100_000.0 / bins as f64; bins];
+        let (chi2, dof) = crate::testing::chi2_statistic(&counts, &expected);
+        assert!(chi2 < crate::testing::chi2_critical(dof, 1e-4), "{chi2}");
     }
 
     #[test]
@@ -1252,17 +1259,11 @@ mod tests {
             // bins of equal table mass, over a window inside the table.
             let w = t.window(0.5 * (lo + hi), 0.4 * (hi - lo));
             let c0 = t.cdf(w.0 * rho);
-            let bins = 20;
-            let mut counts = vec![0u64; bins];
-            for k in 0..100_000u64 {
+            assert_cdf_uniform(|k| {
                 let r = t.sample(PathRng::new(9, k).uniform(), w);
                 assert!(r >= w.0 && r <= w.1, "{r} outside {w:?}");
-                let f = ((t.cdf(r * rho) - c0) / w.2).clamp(0.0, 1.0 - 1e-15);
-                counts[(f * bins as f64) as usize] += 1;
-            }
-            let expected = vec![100_000.0 / bins as f64; bins];
-            let (chi2, dof) = crate::testing::chi2_statistic(&counts, &expected);
-            assert!(chi2 < crate::testing::chi2_critical(dof, 1e-4), "{chi2}");
+                (t.cdf(r * rho) - c0) / w.2
+            });
         }
     }
 
