@@ -416,15 +416,15 @@ fn design_calibrated(
     let start = Instant::now();
     let grid = Grid::new(opts, nx, ny)?;
     let maps: Vec<&Vec<f64>> = first.albedo.iter().collect();
-    let light_radius = grid.light_radius(opts, &maps, nx, ny);
+    let light_radius = grid.light_radius(opts, &maps);
     let geometry = (grid.res, grid.half_width, light_radius, paths);
     let tag = format!("calibrate-{}", s.method.name());
     let (brute, _) = reference_image(opts, staging, &tag, &first.albedo, (nx, ny), geometry)?;
     let tables: Vec<CalibrationTable> = (0..target.len())
         .map(|c| {
             let (a, m) = (
-                grid.pixels(&first.albedo[c], nx, ny),
-                grid.pixels(&first.predicted[c], nx, ny),
+                grid.pixels(&first.albedo[c]),
+                grid.pixels(&first.predicted[c]),
             );
             CalibrationTable::fit(
                 grid.keep
@@ -554,10 +554,13 @@ fn reference_image(
     Ok((split(&img.mean), split(&img.stderr)))
 }
 
-/// The validation's pixel grid over the texture: `res²` pixels of `f × f`
-/// texels, the image's half-width, and the interior pixels (row-major
-/// indices; those further than `margin` MFP inside the texture's edge).
+/// The validation's pixel grid over the texture (`nx × ny` texels):
+/// `res²` pixels of `f × f` texels, the image's half-width, and the
+/// interior pixels (row-major indices; those further than `margin` MFP
+/// inside the texture's edge).
 struct Grid {
+    nx: usize,
+    ny: usize,
     res: usize,
     f: usize,
     half_width: f64,
@@ -592,6 +595,8 @@ impl Grid {
             ));
         }
         Ok(Grid {
+            nx,
+            ny,
             res,
             f,
             half_width,
@@ -603,8 +608,8 @@ impl Grid {
 
     /// Per pixel, the mean of the texel values `map` (row-major `ny × nx`,
     /// edge texels extended) over its `f × f` texels.
-    fn pixels(&self, map: &[f64], nx: usize, ny: usize) -> Vec<f64> {
-        let (res, f, tau) = (self.res, self.f, self.texel);
+    fn pixels(&self, map: &[f64]) -> Vec<f64> {
+        let (res, f, tau, nx, ny) = (self.res, self.f, self.texel, self.nx, self.ny);
         let h = 2.0 * self.half_width / res as f64;
         (0..res * res)
             .map(|k| {
@@ -635,7 +640,8 @@ impl Grid {
     /// edges (σ_tr = √(3σ_a σ_t′), unit σ_t; beyond the texture the medium
     /// is its edge texels extended): light from further out contributes
     /// < 1 % of the reflectance there.
-    fn light_radius(&self, opts: &DesignOptions, maps: &[&Vec<f64>], nx: usize, ny: usize) -> f64 {
+    fn light_radius(&self, opts: &DesignOptions, maps: &[&Vec<f64>]) -> f64 {
+        let (nx, ny) = (self.nx, self.ny);
         let alpha_max = maps
             .iter()
             .flat_map(|m| {
@@ -673,9 +679,9 @@ fn validate(
     let s = &opts.settings;
     let grid = Grid::new(opts, nx, ny)?;
     let maps: Vec<&Vec<f64>> = designed.albedo.iter().chain(&designed.naive).collect();
-    let light_radius = grid.light_radius(opts, &maps, nx, ny);
+    let light_radius = grid.light_radius(opts, &maps);
     let (res, half_width, keep, margin) = (grid.res, grid.half_width, &grid.keep, grid.margin);
-    let target_full: Vec<Vec<f64>> = target.iter().map(|t| grid.pixels(t, nx, ny)).collect();
+    let target_full: Vec<Vec<f64>> = target.iter().map(|t| grid.pixels(t)).collect();
     let target_px: Vec<Vec<f64>> = target_full
         .iter()
         .map(|c| keep.iter().map(|&k| c[k]).collect())
