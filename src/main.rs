@@ -20,7 +20,7 @@ use svkernel::metamodel::meta::MetaModelFile;
 use svkernel::pair::VertexClass;
 use svkernel::provenance::Provenance;
 use svkernel::render::estimator::{Sampling, Sequence};
-use svkernel::render::svbssrdf::{AlbedoSpace, DensityLaw, SPACE_BLUR};
+use svkernel::render::svbssrdf::{AlbedoSpace, DensityLaw, InteriorKernel, SPACE_BLUR};
 
 #[derive(Parser)]
 #[command(
@@ -124,10 +124,10 @@ enum Command {
         sequence: Sequence,
         #[arg(long, default_value_t = 1)]
         seed: u64,
-        /// `learned` with α_t under the interior vertices' kernel (as
-        /// `render --interior`).
-        #[arg(long)]
-        interior: bool,
+        /// Where `learned` takes α_t under the interior vertices' kernel
+        /// (as for `render`).
+        #[arg(long, value_enum, default_value = "auto", num_args = 0..=1, default_missing_value = "always")]
+        interior: InteriorKernel,
         #[command(flatten)]
         models: ModelArgs,
         #[arg(long, default_value = "out/compare")]
@@ -583,12 +583,13 @@ struct RenderArgs {
     /// Kernel-method variant: a second pass with α₀ = α_t.
     #[arg(long)]
     two_pass: bool,
-    /// Kernel-method variant (learned): α_t under the interior vertices'
-    /// kernel, without the first and last vertices that the local terms
-    /// already count. Better on translucent materials, worse on strong
-    /// contrast (docs/design.md §4).
-    #[arg(long)]
-    interior: bool,
+    /// Kernel-method variant (learned): where α_t is taken under the
+    /// interior vertices' kernel, without the first and last vertices that
+    /// the local terms already count: blended in where the paths see an
+    /// albedo above 0.95 (auto), everywhere (always; `--interior` alone) or
+    /// nowhere (never). docs/design.md §4.
+    #[arg(long, value_enum, default_value = "auto", num_args = 0..=1, default_missing_value = "always")]
+    interior: InteriorKernel,
     /// Kernel-method variant: the space in which α_t averages albedo
     /// variation coarser than --space-blur (linear: α; transport: √(1 − α);
     /// log: ln α; absorption: ln(1 − α)); finer variation is averaged linearly.
@@ -1546,7 +1547,7 @@ struct CompareArgs {
     sampling: Sampling,
     sequence: Sequence,
     seed: u64,
-    interior: bool,
+    interior: InteriorKernel,
     models: ModelArgs,
     out: PathBuf,
 }

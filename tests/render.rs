@@ -9,7 +9,7 @@ use svkernel::render::analysis::analyse;
 use svkernel::render::estimator::{Image, Sampling};
 use svkernel::render::reference::Reference;
 use svkernel::render::scene::Scene;
-use svkernel::render::svbssrdf::{AlbedoSpace, DensityLaw, Method, Variant};
+use svkernel::render::svbssrdf::{AlbedoSpace, DensityLaw, InteriorKernel, Method, Variant};
 
 fn scene_file(name: &str, toml: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("svk-render-{}", std::process::id()));
@@ -437,7 +437,11 @@ fn hard_cases_give_finite_images() {
                 plain: on,
                 vertex_kernels: on,
                 two_pass: on,
-                interior: on,
+                interior: if on {
+                    InteriorKernel::Always
+                } else {
+                    InteriorKernel::Never
+                },
                 space: if on {
                     AlbedoSpace::Absorption
                 } else {

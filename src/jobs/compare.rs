@@ -1033,7 +1033,8 @@ fn scene_text(doc: &CompareDoc) -> String {
         r.spp,
         r.sampling.name(),
         match r.variant.as_str() {
-            "" => "default: density-scaled, vertex kernels, one pass".to_string(),
+            "" => "default: density-scaled, vertex kernels, one pass, interior kernel above α 0.95"
+                .to_string(),
             v => v.trim_start_matches('+').to_string(),
         },
         count(r.reference_paths),

@@ -78,8 +78,6 @@ pub fn run(out: &Path, paths: u64, models: &Models, progress: bool) -> Result<De
 /// The scenes the demo renders, the reference paths and samples per pixel.
 pub const DEMO_SCENES: [&str; 3] = ["stripes", "checker", "marble"];
 
-/// The demo scenes rendered with `learned --interior` (the translucent one).
-pub const DEMO_INTERIOR: [&str; 1] = ["marble"];
 const DEMO_REFERENCE_PATHS: u64 = 4_000_000;
 const DEMO_SPP: u32 = 64;
 /// Error-vs-time budgets of the demo: truth paths, model spp, reference paths.
@@ -120,10 +118,7 @@ pub fn compare_scenes(
             "The end-to-end demo on the shipped data: the basis BSSRDF and the kernel \
              meta-model built into svkernel (the same as `data/profiles/basis.json` and \
              `metamodel.json`) render the {} scenes with every method; the brute-force \
-             reference (the heterogeneous walk) is the ground truth. The translucent \
-             `marble` is rendered with `--interior`, as recommended for translucent \
-             materials: learned's albedo for the decay leaves out the first and last \
-             vertices. Produced by `svkernel demo`; one scene alone: `svkernel compare {}`.",
+             reference (the heterogeneous walk) is the ground truth. Produced by `svkernel demo`; one scene alone: `svkernel compare {}`.",
             crate::render::analysis::list_names(&names),
             DEMO_SCENES[0]
         )),
@@ -140,10 +135,6 @@ pub fn compare_scenes(
         let opts = RenderOptions {
             spp: Some(DEMO_SPP),
             reference_paths: Some(DEMO_REFERENCE_PATHS),
-            variant: crate::render::svbssrdf::Variant {
-                interior: DEMO_INTERIOR.contains(&path),
-                ..Default::default()
-            },
             run: RunOptions {
                 progress,
                 ..Default::default()

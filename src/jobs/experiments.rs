@@ -28,7 +28,7 @@ use crate::metamodel::meta::MetaModelFile;
 use crate::provenance::Provenance;
 use crate::render::estimator::{Image, Sampling};
 use crate::render::scene::Scene;
-use crate::render::svbssrdf::{Method, Variant};
+use crate::render::svbssrdf::{InteriorKernel, Method, Variant};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -189,7 +189,12 @@ fn configs(name: &str, settings: &Settings) -> Vec<Config> {
     if name != "features" {
         c.push(with(Method::Learned, &|k| k.variant.vertex_kernels = false));
     }
-    c.push(with(Method::Learned, &|k| k.variant.interior = true));
+    c.push(with(Method::Learned, &|k| {
+        k.variant.interior = InteriorKernel::Never
+    }));
+    c.push(with(Method::Learned, &|k| {
+        k.variant.interior = InteriorKernel::Always
+    }));
     if matches!(name, "stripes" | "checker" | "density") {
         // Manual's kernel does not depend on α₀: a second pass changes nothing.
         c.push(with(Method::Learned, &|k| k.variant.two_pass = true));
@@ -477,7 +482,7 @@ fn sections(rows: &[Row]) -> (Vec<Block>, Option<(usize, Vec<crate::jobs::plot::
         "learned is below manual on {learned_wins} of {n} scenes/passes; manual is below the \
          best of point/factorized/line/ellipse on {manual_wins} of {n}."
     )));
-    let sections: [(&str, &[Method], &str, [&str; 2]); 4] = [
+    let sections: [(&str, &[Method], &str, [&str; 2]); 5] = [
         (
             "Density-scaled vs plain aggregation",
             &[Method::Manual, Method::Learned],
@@ -497,10 +502,18 @@ fn sections(rows: &[Row]) -> (Vec<Block>, Option<(usize, Vec<crate::jobs::plot::
             ["one pass", "two passes"],
         ),
         (
-            "α_t under the all-vertex kernel vs the interior vertices' kernel (learned)",
+            "α_t under the interior vertices' kernel where the paths see a high albedo \
+             (the default) vs the all-vertex kernel everywhere (learned)",
+            &[Method::Learned],
+            "+no-interior",
+            ["blended", "all vertices"],
+        ),
+        (
+            "α_t under the interior vertices' kernel where the paths see a high albedo \
+             (the default) vs everywhere (learned)",
             &[Method::Learned],
             "+interior",
-            ["all vertices", "interior"],
+            ["blended", "interior"],
         ),
     ];
     for (title, ms, variant, names) in sections {
