@@ -46,7 +46,7 @@
 //! (A_k/α² = exp(polynomial)), so nothing divides by α_t: S stays finite as
 //! albedos go to 0.
 //!
-//! # Variants ([`Variant`], for the experiments of the compare issue)
+//! # Variants ([`Variant`], compared by `svkernel experiments`)
 //! * `plain`: α_t = Σ w_k (G ∗ α)(μ_k) (not density-scaled; ρ̄ as above);
 //! * `vertex_kernels` (the default): α_i and α_e of the multiple-scattering
 //!   term are aggregated under the first- and last-vertex kernels instead of
@@ -54,7 +54,10 @@
 //!   normal α_e stays the point value: the vertex that sends light straight
 //!   up through x_e lies straight below it;
 //! * `two_pass`: the kernel is evaluated again at α₀ = α_t and ρ₀ = ρ̄, and
-//!   α_t, ρ̄ recomputed.
+//!   α_t, ρ̄ recomputed;
+//! * `interior` ([`InteriorKernel`]): where `learned`'s α_t leaves out the
+//!   first and last vertices, which l_i and l_e already count; by default
+//!   blended in where the all-vertex α_t exceeds 0.95 ([`INTERIOR_RAMP`]).
 //!
 //! # r → 0
 //! R₁ diverges like 1/r (integrable in area); S is evaluated at
