@@ -1033,8 +1033,10 @@ fn scene_text(doc: &CompareDoc) -> String {
         r.spp,
         r.sampling.name(),
         match r.variant.as_str() {
-            "" => "default: density-scaled, vertex kernels, one pass, interior kernel above α 0.95"
-                .to_string(),
+            "" => format!(
+                "default: density-scaled, vertex kernels, one pass, interior kernel above α {}",
+                crate::render::svbssrdf::INTERIOR_RAMP[0]
+            ),
             v => v.trim_start_matches('+').to_string(),
         },
         count(r.reference_paths),

@@ -118,7 +118,8 @@ pub fn compare_scenes(
             "The end-to-end demo on the shipped data: the basis BSSRDF and the kernel \
              meta-model built into svkernel (the same as `data/profiles/basis.json` and \
              `metamodel.json`) render the {} scenes with every method; the brute-force \
-             reference (the heterogeneous walk) is the ground truth. Produced by `svkernel demo`; one scene alone: `svkernel compare {}`.",
+             reference (the heterogeneous walk) is the ground truth. Produced by \
+             `svkernel demo`; one scene alone: `svkernel compare {}`.",
             crate::render::analysis::list_names(&names),
             DEMO_SCENES[0]
         )),

@@ -213,15 +213,6 @@ impl InteriorKernel {
             }
         }
     }
-
-    /// The name on the command line.
-    pub fn name(self) -> &'static str {
-        match self {
-            InteriorKernel::Never => "never",
-            InteriorKernel::Auto => "auto",
-            InteriorKernel::Always => "always",
-        }
-    }
 }
 
 /// Which density scales the kernel methods' profile, R(r; α_t, ρ) =
@@ -1163,12 +1154,11 @@ impl SvBssrdf {
     ) -> (f64, f64, Option<f64>) {
         let (parts, rho_bar) = self.aggregate_parts(c, frame, &scratch.kernel);
         let all = self.alpha_of_parts(parts);
-        let w = interior.map_or(0.0, |_| self.variant.interior.weight(all));
+        let w = self.variant.interior.weight(all);
         let Some(meta) = interior.filter(|_| w > 0.0) else {
             return (all, rho_bar, None);
         };
-        let (inner, le) = match self.interior_in_parts(meta, c, frame, d, rho, parts, all, scratch)
-        {
+        let (inner, le) = match self.interior_in_parts(meta, c, frame, d, rho, parts, scratch) {
             Some((inner, le)) => (inner, Some(le)),
             None => {
                 // n̄ at the all-vertex α_t: the albedo that the paths see.
@@ -1217,8 +1207,8 @@ impl SvBssrdf {
 
     /// (α_t under the interior kernel, l_e) in the common case, a constant
     /// density with the first vertex under x_i in exitance, from the parts
-    /// of K_int's signed mixture read once each: K_all's (`parts`, with
-    /// `all` = α_t under it), K_last's (which also give l_e) and the
+    /// of K_int's signed mixture read once each: K_all's (`parts`, from
+    /// [`Self::aggregate_parts`]), K_last's (which also give l_e) and the
     /// point's, combined as ((m + 2)·ȳ_all − ȳ_last − ȳ_point)/m per
     /// aggregand (the same sums as [`Self::interior_kernel`]'s mixture, in
     /// another order). `None` otherwise (density-weighted means do not
@@ -1232,8 +1222,7 @@ impl SvBssrdf {
         frame: &Frame,
         d: f64,
         rho0: f64,
-        [y_a, r_a]: [f64; 2],
-        all: f64,
+        parts: [f64; 2],
         scratch: &mut Scratch,
     ) -> Option<(f64, f64)> {
         let b = &*self.basis;
@@ -1248,9 +1237,11 @@ impl SvBssrdf {
         let point = &mut scratch.interior.components;
         point.clear();
         point.push(Component::point(1.0, 0.0));
+        // n̄ at the all-vertex α_t: the albedo that the paths see.
         let m = b
-            .interior_vertices(d.max(R_MIN) * rho0, all)
+            .interior_vertices(d.max(R_MIN) * rho0, self.alpha_of_parts(parts))
             .max(INTERIOR_MIN);
+        let [y_a, r_a] = parts;
         let combine = |all: f64, last: f64, point: f64| ((m + 2.0) * all - last - point) / m;
         Some(match &p.mapped {
             Some(q) => {
@@ -1292,8 +1283,8 @@ impl SvBssrdf {
             let (parts, rho_bar) = self.aggregate_parts(c, frame, kernel);
             return (self.alpha_of_parts(parts), rho_bar);
         }
-        let ([a], rho_bar) =
-            self.means(self.pyramids(), [&self.pyramids().linear], c, frame, kernel);
+        let p = self.pyramids();
+        let ([a], rho_bar) = self.means(p, [&p.linear], c, frame, kernel);
         (a.clamp(0.0, 1.0), rho_bar)
     }
 
