@@ -19,7 +19,7 @@ use svkernel::metamodel::basis::BasisModel;
 use svkernel::metamodel::meta::MetaModelFile;
 use svkernel::pair::VertexClass;
 use svkernel::provenance::Provenance;
-use svkernel::render::estimator::{Sampling, Sequence};
+use svkernel::render::estimator::{Allocation, Sampling, Sequence};
 use svkernel::render::svbssrdf::{AlbedoSpace, DensityLaw, InteriorKernel, SPACE_BLUR};
 
 #[derive(Parser)]
@@ -122,6 +122,9 @@ enum Command {
         /// The numbers samples are made of (as for `render`).
         #[arg(long, value_enum, default_value = "sobol")]
         sequence: Sequence,
+        /// How the samples are shared among the pixels (as for `render`).
+        #[arg(long, value_enum, default_value = "adaptive")]
+        allocation: Allocation,
         #[arg(long, default_value_t = 1)]
         seed: u64,
         /// Where `learned` takes α_t under the interior vertices' kernel
@@ -563,6 +566,11 @@ struct RenderArgs {
     /// (randomised QMC) or independent ones.
     #[arg(long, value_enum, default_value = "sobol")]
     sequence: Sequence,
+    /// How the samples are shared among the pixels: the same number in
+    /// every pixel, or spp on average with each pixel's share in
+    /// proportion to its value in a pilot render.
+    #[arg(long, value_enum, default_value = "adaptive")]
+    allocation: Allocation,
     /// Render everything in full, even effects the scene does not call
     /// for (grey RGB as three channels, a constant density map through a
     /// pyramid, a homogeneous material through every method's machinery).
@@ -1546,6 +1554,7 @@ struct CompareArgs {
     analysis: bool,
     sampling: Sampling,
     sequence: Sequence,
+    allocation: Allocation,
     seed: u64,
     interior: InteriorKernel,
     models: ModelArgs,
@@ -1561,6 +1570,7 @@ fn compare(a: CompareArgs) -> Result<()> {
     let opts = RenderOptions {
         sampling: a.sampling,
         sequence: a.sequence,
+        allocation: a.allocation,
         seed: a.seed,
         spp: a.spp,
         reference_paths: a.paths,
@@ -1662,6 +1672,7 @@ fn render(a: RenderArgs) -> Result<()> {
         spp: a.spp,
         sampling: a.sampling,
         sequence: a.sequence,
+        allocation: a.allocation,
         variant: Variant {
             plain: a.plain,
             vertex_kernels: !a.point_albedos,
@@ -1790,6 +1801,7 @@ fn main() -> std::process::ExitCode {
             no_analysis,
             sampling,
             sequence,
+            allocation,
             seed,
             interior,
             models,
@@ -1802,6 +1814,7 @@ fn main() -> std::process::ExitCode {
             analysis: !no_analysis,
             sampling,
             sequence,
+            allocation,
             seed,
             interior,
             models,

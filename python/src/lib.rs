@@ -17,6 +17,7 @@ use svkernel::forward::tally::RadialBins;
 use svkernel::jobs::render::{RenderOptions, Target, metrics, render_scene};
 use svkernel::prelude::*;
 use svkernel::provenance::Provenance;
+use svkernel::render::estimator::Allocation;
 
 /// A library error as the matching exception of `svkernel._errors`.
 fn py_err(e: svkernel::Error) -> PyErr {
@@ -390,7 +391,7 @@ impl PySvBssrdf {
 /// named `origin` in errors, texture files relative to its folder), or if
 /// `text` is None the file or canonical scene `origin`.
 #[pyfunction]
-#[pyo3(signature = (text, origin, methods, spp, reference_paths, seed, progress, meta=None))]
+#[pyo3(signature = (text, origin, methods, spp, reference_paths, seed, progress, meta=None, allocation=None))]
 #[allow(clippy::too_many_arguments)]
 fn render<'py>(
     py: Python<'py>,
@@ -402,6 +403,7 @@ fn render<'py>(
     seed: u64,
     progress: bool,
     meta: Option<PyRef<'py, MetaModel>>,
+    allocation: Option<&str>,
 ) -> PyResult<Bound<'py, PyList>> {
     let scene = lib(match text {
         Some(text) => Scene::from_toml(text, &origin),
@@ -421,6 +423,9 @@ fn render<'py>(
             .collect::<PyResult<_>>()?;
     }
     opts.spp = spp;
+    if let Some(a) = allocation {
+        opts.allocation = lib(Allocation::parse(a))?;
+    }
     opts.reference_paths = reference_paths;
     opts.seed = seed;
     opts.run.progress = progress;

@@ -345,6 +345,7 @@ def render(
     seed: int = 1,
     progress: bool = False,
     model: Optional[MetaModel] = None,
+    allocation: str = "adaptive",
 ) -> Dict[str, Any]:
     """Renders a scene with its methods and the brute-force reference.
 
@@ -352,7 +353,11 @@ def render(
     dict with the scene file's TOML schema (texture paths relative to the
     current folder). ``methods`` overrides the scene's (``"reference"`` is one
     of them; default: the scene's methods and the reference). ``spp`` and
-    ``reference_paths`` override the scene's budgets.
+    ``reference_paths`` override the scene's budgets. ``allocation`` shares
+    the model methods' samples among the pixels: ``"adaptive"`` (``spp`` is
+    the mean over the image, each pixel's share following its value in a
+    pilot render) or ``"uniform"`` (``spp`` in every pixel), as the command
+    line's ``--allocation``.
 
     Returns a dict with one entry per method (``"reference"``, ``"learned"``,
     ...), each a dict of ``mean`` and ``stderr`` images of shape
@@ -373,6 +378,7 @@ def render(
         int(seed),
         bool(progress),
         model,
+        str(allocation),
     )
     result: Dict[str, Any] = dict(passes[0]["methods"])
     result["passes"] = list(passes)

@@ -66,6 +66,7 @@ def render(
     seed: int,
     progress: bool,
     meta: Optional[MetaModel] = None,
+    allocation: Optional[str] = None,
 ) -> List[Dict[str, Any]]: ...
 def simulate_profile(
     albedo: float,

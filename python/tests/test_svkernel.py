@@ -265,6 +265,20 @@ def test_render_round_trip_equals_the_command_line(tmp_path):
     assert len(from_dict["passes"]) == 1
 
 
+def test_render_allocation_follows_the_command_line(tmp_path):
+    (tmp_path / "mini.toml").write_text(MINI_TOML)
+    cli("render", "mini.toml", "--out", "out", "--spp", "16", "--method", "learned",
+        "--allocation", "uniform", cwd=tmp_path)
+    want = np.load(tmp_path / "out" / "main" / "learned_mean.npy")
+    uniform = sk.render(MINI, methods=["learned"], spp=16, allocation="uniform")
+    np.testing.assert_array_equal(uniform["learned"]["mean"].reshape(want.shape), want)
+    adaptive = sk.render(MINI, methods=["learned"], spp=16)
+    assert not np.array_equal(adaptive["learned"]["mean"], uniform["learned"]["mean"])
+    with pytest.raises(sk.InvalidParameter) as e:
+        sk.render(MINI, spp=16, allocation="everywhere")
+    assert e.value.key == "allocation"
+
+
 def test_render_canonical_scene_and_methods():
     r = sk.render("stripes", methods=["factorized"], spp=4)
     assert set(r) == {"factorized", "passes"}

@@ -1020,8 +1020,8 @@ fn scene_text(doc: &CompareDoc) -> String {
     };
     format!(
         "Scene file `{}`: {}² pixels over a window of half-width {} MFP; a {light} disk light of \
-         radius {} MFP; observable {}.{material} Main render: {} spp per model, {} sampling, \
-         variant `{}`; reference {} paths; seed {}. Commit `{}`.",
+         radius {} MFP; observable {}.{material} Main render: {} spp per model ({}), {} \
+         sampling, variant `{}`; reference {} paths; seed {}. Commit `{}`.",
         r.scene.display(),
         r.resolution,
         r.half_width,
@@ -1031,6 +1031,12 @@ fn scene_text(doc: &CompareDoc) -> String {
             crate::render::scene::Observable::Radiance => "radiance",
         },
         r.spp,
+        match r.allocation {
+            crate::render::estimator::Allocation::Uniform => "in every pixel",
+            crate::render::estimator::Allocation::Adaptive => {
+                "on average, shared by a pilot render"
+            }
+        },
         r.sampling.name(),
         match r.variant.as_str() {
             "" => format!(
@@ -1285,7 +1291,9 @@ pub fn glossary() -> Vec<Block> {
         ),
         (
             "spp",
-            "samples per pixel: the light samples a model method takes per pixel (the \
+            "samples per pixel: the light samples a model method takes per pixel, on \
+             average over the image with the adaptive allocation, which gives each pixel a \
+             share that follows its value in a pilot render at half the resolution (the \
              reference's budget is its number of paths).",
         ),
         (

@@ -28,7 +28,7 @@ use crate::forward::runner::{RunOptions, Shard, chunk_range, run};
 use crate::jobs::shipped::Models;
 use crate::provenance::Provenance;
 use crate::render::analysis::analyse;
-use crate::render::estimator::{self, Image, Sampling, Sequence, Settings, View};
+use crate::render::estimator::{self, Allocation, Image, Sampling, Sequence, Settings, View};
 use crate::render::reference::{REFERENCE_FORMAT, REFERENCE_VERSION, Reference, ReferenceTally};
 use crate::render::scene::{LightKind, Observable, Scene};
 use crate::render::svbssrdf::{BasisTable, Density, Material, Method, SvBssrdf, Variant};
@@ -102,6 +102,7 @@ pub struct RenderOptions {
     pub spp: Option<u32>,
     pub sampling: Sampling,
     pub sequence: Sequence,
+    pub allocation: Allocation,
     pub variant: Variant,
     pub seed: u64,
     pub reference_paths: Option<u64>,
@@ -143,6 +144,7 @@ impl RenderOptions {
             spp: None,
             sampling: Sampling::Importance,
             sequence: Sequence::default(),
+            allocation: Allocation::default(),
             variant: Variant::default(),
             seed: 1,
             reference_paths: None,
@@ -503,6 +505,7 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
         spp: opts.spp.unwrap_or(scene.samples),
         sampling: opts.sampling,
         sequence: opts.sequence,
+        allocation: opts.allocation,
         seed: opts.seed,
     };
     if targets.iter().any(|t| matches!(t, Target::Model(_))) {
@@ -762,6 +765,10 @@ pub struct RenderDoc {
     /// existed read as `independent`).
     #[serde(default = "independent")]
     pub sequence: Sequence,
+    /// How the samples are shared among the pixels (documents written
+    /// before it existed read as `uniform`).
+    #[serde(default = "uniform")]
+    pub allocation: Allocation,
     /// [`Variant::tag`]: "" for the default.
     pub variant: String,
     pub seed: u64,
@@ -1031,6 +1038,7 @@ pub fn write_outputs(scene: &Scene, opts: &RenderOptions, passes: &[Pass]) -> Re
         spp: opts.spp.unwrap_or(scene.samples),
         sampling: opts.sampling,
         sequence: opts.sequence,
+        allocation: opts.allocation,
         variant: opts.variant.tag(),
         seed: opts.seed,
         reference_paths: opts.reference_paths.unwrap_or(scene.reference_paths),
@@ -1093,6 +1101,10 @@ pub fn merge_reference(inputs: &[PathBuf], out: &Path) -> Result<()> {
 /// The sequence of documents written before [`RenderDoc::sequence`].
 fn independent() -> Sequence {
     Sequence::Independent
+}
+
+fn uniform() -> Allocation {
+    Allocation::Uniform
 }
 
 #[cfg(test)]

@@ -89,9 +89,43 @@
 //!   RMS error 14.6 % at 64 spp and 5.4 % at 256 spp, against 32.6 % and
 //!   16.3 % with independent numbers (docs/measurements.md).
 //! * `independent` — sample j of pixel p draws from
-//!   [`PathRng`]`(seed, p·spp + j)`. The per-pixel standard error is
-//!   √(Σ_s Var_s(v)/n_s) over the strategy groups s (sample variances of
-//!   the group values v, n_s − 1 in the denominator).
+//!   [`PathRng`]`(seed, p·spp + j)` (with the `uniform` allocation). The
+//!   per-pixel standard error is √(Σ_s Var_s(v)/n_s) over the strategy
+//!   groups s (sample variances of the group values v, n_s − 1 in the
+//!   denominator).
+//!
+//! # Samples per pixel ([`Allocation`])
+//! The error of an image is carried by its bright pixels: the relative
+//! RMSE √(Σ(M̂ − M)²/ΣM²) hardly notices the dim pixels far from the light,
+//! which under a small light are most of the image.
+//! * `adaptive` (the default) — spp is the mean over the image. A pilot
+//!   render at half the resolution (pilot pixels of 2 × 2 pixels), of
+//!   [`PILOT_SPP`] samples per pilot pixel from streams of its own (the
+//!   seed XOR a constant), then thrown away, gives a value v (summed over
+//!   channels) to every 2 × 2 block. A pixel's weight w is the largest v
+//!   under it and its eight neighbours, so that one unlucky pilot does not
+//!   starve it. The pilot costs about 1/16 of a 64-spp render's samples and
+//!   a quarter of its per-pixel set-up; at full resolution it lowered the
+//!   noise at 16 spp by at most 2 % (`density`; `checker` the same). Pixel p gets n_p ∝ w_p^γ samples, γ = [`ADAPTIVE_GAMMA`],
+//!   clamped to [[`ADAPTIVE_FLOOR`]·spp, [`ADAPTIVE_CAP`]·spp], rounded to
+//!   whole blocks (2 samples, 4 with `mis`), and scaled by bisection so that
+//!   together they spend N²·spp (unless every pixel the pilot saw is at its
+//!   cap).
+//!   γ = 0.75 because a pixel's variance is a_p·n^(−β), with a_p ∝ v_p²
+//!   (the relative noise per sample is about the same everywhere), and
+//!   minimising Σ a_p·n_p^(−β) at a fixed Σ n_p gives n_p ∝ v_p^(2/(1+β)):
+//!   with the randomised QMC rate measured on `density`, β ≈ 1.66 (error ∝
+//!   N^(−0.83)), that is v^0.75; plain Monte Carlo (β = 1) would give v¹.
+//!   At 16 spp γ = 0.75 beat 1 and 0.5 on `density`, `checker`, `stripes`
+//!   and `milk` (docs/measurements.md).
+//!   The counts depend only on the pilot, whose numbers are independent of
+//!   the render's, so each pixel's estimate stays unbiased and its standard
+//!   error is computed as before; with `independent` numbers, sample j of
+//!   pixel p draws from (seed, p·c + j), c the cap. Each method renders
+//!   its own pilot, whose time is part of its render's; sample j of pixel
+//!   p is still made of the same numbers for every method, but how many
+//!   samples p gets follows the method's own pilot.
+//! * `uniform` — spp samples in every pixel.
 //!
 //! # Radiance along the normal
 //! For [`Observable::Radiance`](crate::forward::medium::Observable) the same integral is taken with S the
@@ -224,10 +258,44 @@ impl Image {
 /// Estimator settings.
 #[derive(Clone, Debug)]
 pub struct Settings {
+    /// Samples per pixel: in every pixel ([`Allocation::Uniform`]) or on
+    /// average over the image ([`Allocation::Adaptive`]).
     pub spp: u32,
     pub sampling: Sampling,
     pub sequence: Sequence,
+    pub allocation: Allocation,
     pub seed: u64,
+}
+
+/// How a render's samples are shared among its pixels (module docs,
+/// "Samples per pixel").
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum Allocation {
+    /// spp samples in every pixel.
+    Uniform,
+    /// spp samples per pixel on average, each pixel's share in proportion
+    /// to its value in a pilot render, between [`ADAPTIVE_FLOOR`] and
+    /// [`ADAPTIVE_CAP`] times spp.
+    #[default]
+    Adaptive,
+}
+
+impl Allocation {
+    pub fn parse(s: &str) -> crate::Result<Self> {
+        match s {
+            "uniform" => Ok(Allocation::Uniform),
+            "adaptive" => Ok(Allocation::Adaptive),
+            _ => Err(crate::Error::param("allocation", s, "uniform or adaptive")),
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Allocation::Uniform => "uniform",
+            Allocation::Adaptive => "adaptive",
+        }
+    }
 }
 
 /// The numbers each pixel's samples are made of (module docs, "Streams and
@@ -894,10 +962,15 @@ pub fn render(sv: &SvBssrdf, view: &View, settings: &Settings) -> Image {
     let channels = sv.channels();
     let scale = view.irradiance;
     let guided = settings.sampling != Sampling::Profile && albedo_varies(sv);
+    let counts = sample_counts(sv, view, settings, guided);
+    let stride = match settings.allocation {
+        Allocation::Uniform => settings.spp as u64,
+        Allocation::Adaptive => adaptive_cap(settings.spp),
+    };
     let pixels: Vec<Vec<(f64, f64)>> = (0..n * n)
         .into_par_iter()
         .map_init(Scratch::default, |scratch, p| {
-            pixel(sv, view, settings, guided, p, scratch)
+            pixel(sv, view, settings, guided, p, (counts[p], stride), scratch)
                 .into_iter()
                 .map(|(m, e)| (m * scale, e * scale))
                 .collect()
@@ -912,6 +985,122 @@ pub fn render(sv: &SvBssrdf, view: &View, settings: &Settings) -> Image {
         }
     }
     img
+}
+
+/// Samples per pixel of the pilot render behind [`Allocation::Adaptive`].
+pub const PILOT_SPP: u32 = 4;
+
+/// The fewest samples a pixel gets under [`Allocation::Adaptive`], as a
+/// fraction of the mean spp (and never fewer than a standard error needs).
+pub const ADAPTIVE_FLOOR: f64 = 0.125;
+
+/// The most samples a pixel gets under [`Allocation::Adaptive`], as a
+/// multiple of the mean spp.
+pub const ADAPTIVE_CAP: u64 = 16;
+
+/// The exponent γ of the pilot value in an adaptive pixel's share, n ∝ v^γ.
+pub const ADAPTIVE_GAMMA: f64 = 0.75;
+
+fn adaptive_cap(spp: u32) -> u64 {
+    (spp as u64 * ADAPTIVE_CAP).min(SOBOL_MAX_SPP)
+}
+
+/// Separates the pilot's streams from the render's.
+const PILOT_STREAM: u64 = 0x9e37_79b9_7f4a_7c15;
+
+/// Each pixel's sample count (module docs, "Samples per pixel").
+fn sample_counts(sv: &SvBssrdf, view: &View, settings: &Settings, guided: bool) -> Vec<u64> {
+    let n = view.resolution;
+    let spp = settings.spp as u64;
+    if settings.allocation == Allocation::Uniform {
+        return vec![spp; n * n];
+    }
+    let pilot = Settings {
+        spp: PILOT_SPP,
+        seed: settings.seed ^ PILOT_STREAM,
+        allocation: Allocation::Uniform,
+        ..settings.clone()
+    };
+    // The pilot's pixels are 2 × 2 of the image's (its window of half-width
+    // m·h, m = ⌈n/2⌉, covers the image's).
+    let m = n.div_ceil(2);
+    let h = 2.0 * view.half_width / n as f64;
+    let coarse = View {
+        resolution: m,
+        half_width: m as f64 * h,
+        ..*view
+    };
+    let pilot_spp = pilot.spp as u64;
+    let values: Vec<f64> = (0..m * m)
+        .into_par_iter()
+        .map_init(Scratch::default, |scratch, p| {
+            pixel(
+                sv,
+                &coarse,
+                &pilot,
+                guided,
+                p,
+                (pilot_spp, pilot_spp),
+                scratch,
+            )
+            .iter()
+            .map(|(v, _)| v.abs())
+            .sum()
+        })
+        .collect();
+    // The pilot pixel under the image's pixel k (of n) along one axis, its
+    // centre at (k + ½)·h from the window's edge.
+    let offset = 0.5 * (m as f64 * 2.0 - n as f64);
+    let under = |k: usize| (((k as f64 + 0.5 + offset) / 2.0) as usize).min(m - 1);
+    // A pixel's weight is the largest pilot value under it and its eight
+    // neighbours, so that one unlucky pilot does not starve a pixel.
+    let around = |k: usize| under(k.saturating_sub(1))..=under((k + 1).min(n - 1));
+    let weight: Vec<f64> = (0..n * n)
+        .map(|p| {
+            let (i, j) = (p / n, p % n);
+            around(i)
+                .flat_map(|a| around(j).map(move |b| a * m + b))
+                .map(|q| values[q])
+                .fold(0.0, f64::max)
+                .powf(ADAPTIVE_GAMMA)
+        })
+        .collect();
+    let step = if settings.sampling == Sampling::Mis {
+        4
+    } else {
+        2
+    };
+    share(&weight, spp, step)
+}
+
+/// Shares n·spp samples among n pixels in proportion to `weight`, each
+/// between [`ADAPTIVE_FLOOR`]·spp and [`ADAPTIVE_CAP`]·spp and a multiple
+/// of `step` (uniform where every weight is 0).
+fn share(weight: &[f64], spp: u64, step: u64) -> Vec<u64> {
+    let total = (spp * weight.len() as u64) as f64;
+    let floor = ((spp as f64 * ADAPTIVE_FLOOR) as u64).max(step) as f64;
+    let cap = adaptive_cap(spp as u32) as f64;
+    let wsum: f64 = weight.iter().sum();
+    if wsum <= 0.0 || !wsum.is_finite() {
+        return vec![spp; weight.len()];
+    }
+    let counts = |c: f64| weight.iter().map(move |w| (c * w).clamp(floor, cap));
+    // Σ clamp(c·w) grows with c: bisect for the c that spends the budget.
+    let (mut lo, mut hi) = (0.0, total / wsum * 2.0);
+    while counts(hi).sum::<f64>() < total && hi < 1e300 {
+        hi *= 2.0;
+    }
+    for _ in 0..100 {
+        let mid = 0.5 * (lo + hi);
+        if counts(mid).sum::<f64>() > total {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    counts(lo)
+        .map(|x| (((x / step as f64).round() as u64) * step).max(step))
+        .collect()
 }
 
 /// Per-group running sums of the sample values: (n, Σv, Σv²) per channel.
@@ -929,6 +1118,7 @@ fn pixel(
     settings: &Settings,
     guided: bool,
     p: usize,
+    (spp, stride): (u64, u64),
     scratch: &mut Scratch,
 ) -> Vec<(f64, f64)> {
     let n = view.resolution;
@@ -952,7 +1142,6 @@ fn pixel(
         RadialTable::new(&profile, (near - radius).max(0.0), far + radius)
     });
     let p_uniform = 1.0 / (PI * radius * radius);
-    let spp = settings.spp as u64;
     let (n_u, n_i) = match settings.sampling {
         Sampling::Uniform => (spp as f64, 0.0),
         Sampling::Profile | Sampling::Importance => (0.0, spp as f64),
@@ -983,7 +1172,7 @@ fn pixel(
         };
         let (xe, u) = match settings.sequence {
             Sequence::Independent => {
-                let mut rng = PathRng::new(settings.seed, p as u64 * spp + j);
+                let mut rng = PathRng::new(settings.seed, p as u64 * stride + j);
                 let xe = [corner[0] + h * rng.uniform(), corner[1] + h * rng.uniform()];
                 (xe, [rng.uniform(), rng.uniform()])
             }
@@ -1298,21 +1487,32 @@ mod tests {
             let pixels = [(2, 2), (2, 3), (0, 4)];
             let quads = pixel_quadratures(&sv, &view, &pixels);
             for sampling in [Sampling::Uniform, Sampling::Importance, Sampling::Mis] {
-                let settings = Settings {
-                    spp: 4096,
-                    sampling,
-                    sequence: Sequence::Independent,
-                    seed: 3,
-                };
-                let img = render(&sv, &view, &settings);
-                for (&(i, j), quad) in pixels.iter().zip(&quads) {
-                    let k = img.index(0, i, j);
-                    let (m, e) = (img.mean[k], img.stderr[k]);
-                    // 4σ plus the midpoint rule's error over the pixel.
-                    assert!(
-                        (m - quad).abs() < 4.0 * e + 2e-3 * quad,
-                        "{sampling:?} α {alpha} pixel ({i},{j}): {m} ± {e} vs {quad}"
-                    );
+                for allocation in [Allocation::Uniform, Allocation::Adaptive] {
+                    let settings = Settings {
+                        spp: 4096,
+                        sampling,
+                        sequence: Sequence::Independent,
+                        allocation,
+                        seed: 3,
+                    };
+                    let img = render(&sv, &view, &settings);
+                    for (&(i, j), quad) in pixels.iter().zip(&quads) {
+                        // Inside the disk uniform sampling has infinite
+                        // variance (the 1/r of single scattering), and 4σ
+                        // of its estimated error is no bound there: its
+                        // adaptive counts are checked outside the disk only.
+                        let singular = sampling == Sampling::Uniform && (i, j) != (0, 4);
+                        if singular && allocation == Allocation::Adaptive {
+                            continue;
+                        }
+                        let k = img.index(0, i, j);
+                        let (m, e) = (img.mean[k], img.stderr[k]);
+                        // 4σ plus the midpoint rule's error over the pixel.
+                        assert!(
+                            (m - quad).abs() < 4.0 * e + 2e-3 * quad,
+                            "{sampling:?} {allocation:?} α {alpha} pixel ({i},{j}): {m} ± {e} vs {quad}"
+                        );
+                    }
                 }
             }
         }
@@ -1334,7 +1534,12 @@ mod tests {
 
     /// Per pixel of [`sobol_case`], the estimates of `seeds` independent
     /// renders (seeds 1..=seeds) with `spp` Sobol' samples.
-    fn sobol_estimates(sv: &SvBssrdf, sampling: Sampling, spp: u32, seeds: u64) -> Vec<Vec<f64>> {
+    fn sobol_estimates(
+        sv: &SvBssrdf,
+        (sampling, allocation): (Sampling, Allocation),
+        spp: u32,
+        seeds: u64,
+    ) -> Vec<Vec<f64>> {
         let (view, pixels, _) = sobol_case(sv);
         let imgs: Vec<Image> = (1..=seeds)
             .map(|seed| {
@@ -1342,6 +1547,7 @@ mod tests {
                     spp,
                     sampling,
                     sequence: Sequence::Sobol,
+                    allocation,
                     seed,
                 };
                 render(sv, &view, &settings)
@@ -1358,19 +1564,25 @@ mod tests {
     }
 
     /// Randomised QMC is unbiased: the mean of 32 independent renders (each
-    /// [`RANDOMIZATIONS`] scrambles of 256 points in all) agrees with
-    /// quadrature to 4σ of the renders' spread, for every strategy, inside,
-    /// across and outside the light's edge. Uniform sampling is checked only
-    /// outside the disk: where x_e lies in it, the 1/r of single scattering
-    /// gives it infinite variance, and the spread of 32 renders does not
-    /// bound its error.
+    /// [`RANDOMIZATIONS`] scrambles of 256 points in all, or of as many as
+    /// the adaptive allocation gives the pixel) agrees with quadrature to 4σ
+    /// of the renders' spread, for every strategy, inside, across and
+    /// outside the light's edge. Uniform sampling is checked only outside
+    /// the disk: where x_e lies in it, the 1/r of single scattering gives it
+    /// infinite variance, and the spread of 32 renders does not bound its
+    /// error.
     #[test]
     fn sobol_points_are_unbiased() {
         for (alpha, rho) in [(0.9, 1.0), (0.5, 2.0)] {
             let sv = homogeneous(alpha, rho);
             let (_, pixels, quads) = sobol_case(&sv);
-            for sampling in [Sampling::Uniform, Sampling::Importance, Sampling::Mis] {
-                let runs = sobol_estimates(&sv, sampling, 256, 32);
+            let strategies = [Sampling::Uniform, Sampling::Importance, Sampling::Mis];
+            let allocations = [Allocation::Uniform, Allocation::Adaptive];
+            for (sampling, allocation) in strategies
+                .into_iter()
+                .flat_map(|s| allocations.map(|a| (s, a)))
+            {
+                let runs = sobol_estimates(&sv, (sampling, allocation), 256, 32);
                 for ((px, quad), v) in pixels.iter().zip(&quads).zip(&runs) {
                     if sampling == Sampling::Uniform && *px != (0, 4) {
                         continue;
@@ -1380,7 +1592,7 @@ mod tests {
                     let sd = (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
                     assert!(
                         (m - quad).abs() < 4.0 * sd / n.sqrt() + 2e-3 * quad,
-                        "{sampling:?} α {alpha} pixel {px:?}: {m} ± {} vs {quad}",
+                        "{sampling:?} {allocation:?} α {alpha} pixel {px:?}: {m} ± {} vs {quad}",
                         sd / n.sqrt()
                     );
                 }
@@ -1397,11 +1609,96 @@ mod tests {
         let sv = homogeneous(0.9, 1.0);
         let (_, _, quads) = sobol_case(&sv);
         let rms = |spp| {
-            let v = &sobol_estimates(&sv, Sampling::Importance, spp, 16)[2];
+            let v = &sobol_estimates(&sv, (Sampling::Importance, Allocation::Uniform), spp, 16)[2];
             (v.iter().map(|x| (x - quads[2]).powi(2)).sum::<f64>() / v.len() as f64).sqrt()
         };
         let (coarse, fine) = (rms(16), rms(1024));
         assert!(coarse > 16.0 * fine, "16 spp: {coarse}, 1024 spp: {fine}");
+    }
+
+    /// The adaptive share spends the budget (to the rounding of whole
+    /// steps), keeps every pixel between its floor and its cap in whole
+    /// steps, gives a heavier pixel at least as many samples, and falls back
+    /// to spp everywhere when the pilot saw nothing.
+    #[test]
+    fn the_adaptive_share_spends_the_budget_within_its_bounds() {
+        // A few bright pixels (more than their cap would take) over a
+        // spread of dim ones.
+        let weight: Vec<f64> = (0..400u64)
+            .map(|k| match k % 50 {
+                0 => 1.0,
+                _ => 0.01 * ((k * 37 % 101) as f64 / 100.0).powi(2),
+            })
+            .collect();
+        let mut order: Vec<usize> = (0..weight.len()).collect();
+        order.sort_by(|&a, &b| weight[a].total_cmp(&weight[b]));
+        for (spp, step) in [(16, 2), (64, 2), (64, 4), (1000, 4)] {
+            let n = share(&weight, spp, step);
+            let budget = spp * weight.len() as u64;
+            let total: u64 = n.iter().sum();
+            assert!(
+                total.abs_diff(budget) * 50 <= budget,
+                "spp {spp}: {total} of {budget}"
+            );
+            let floor = ((spp as f64 * ADAPTIVE_FLOOR) as u64).max(step);
+            let cap = adaptive_cap(spp as u32);
+            for &k in &n {
+                assert!(k % step == 0, "{k} not in steps of {step}");
+                assert!(2 * k + step >= 2 * floor && 2 * k <= 2 * cap + step, "{k}");
+            }
+            assert!(
+                n.iter().any(|&k| 2 * k + step >= 2 * cap),
+                "no pixel at the cap"
+            );
+            assert!(order.windows(2).all(|w| n[w[0]] <= n[w[1]]), "not monotone");
+        }
+        assert_eq!(share(&[0.0; 9], 16, 2), vec![16; 9]);
+    }
+
+    /// Under a light much smaller than the image the adaptive allocation
+    /// puts its samples where the exitance is: at the same total samples
+    /// the image's noise variance (Σσ²/ΣM², from the renders' standard
+    /// errors) falls by more than half (4.5× when written). It renders the
+    /// same for any thread count.
+    #[test]
+    fn adaptive_allocation_lowers_the_noise_under_a_small_light() {
+        let sv = striped();
+        let view = View {
+            light_radius: 0.5,
+            irradiance: 1.0,
+            resolution: 16,
+            half_width: 1.5,
+        };
+        let settings = |allocation| Settings {
+            spp: 16,
+            sampling: Sampling::Importance,
+            sequence: Sequence::Sobol,
+            allocation,
+            seed: 5,
+        };
+        let noise = |img: &Image| {
+            let sq = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>();
+            (sq(&img.stderr) / sq(&img.mean)).sqrt()
+        };
+        let uniform = noise(&render(&sv, &view, &settings(Allocation::Uniform)));
+        let pool = |threads| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+        };
+        let adaptive = settings(Allocation::Adaptive);
+        let one = pool(1).install(|| render(&sv, &view, &adaptive));
+        let three = pool(3).install(|| render(&sv, &view, &adaptive));
+        assert_eq!(
+            one, three,
+            "the adaptive render depends on the thread count"
+        );
+        let adaptive = noise(&one);
+        assert!(
+            adaptive.powi(2) < 0.5 * uniform.powi(2),
+            "adaptive {adaptive:.4} against uniform {uniform:.4}"
+        );
     }
 
     #[test]
@@ -1521,6 +1818,7 @@ mod tests {
             spp,
             sampling,
             sequence,
+            allocation: Allocation::Uniform,
             seed,
         };
         render(sv, view, &settings)
