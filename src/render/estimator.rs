@@ -1658,7 +1658,7 @@ mod tests {
     /// Under a light much smaller than the image the adaptive allocation
     /// puts its samples where the exitance is: at the same total samples
     /// the image's noise variance (Σσ²/ΣM², from the renders' standard
-    /// errors) falls by more than half (4.5× when written). It renders the
+    /// errors) falls by more than half (3.4× when written). It renders the
     /// same for any thread count.
     #[test]
     fn adaptive_allocation_lowers_the_noise_under_a_small_light() {
