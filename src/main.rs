@@ -567,8 +567,8 @@ struct RenderArgs {
     #[arg(long, value_enum, default_value = "sobol")]
     sequence: Sequence,
     /// How the samples are shared among the pixels: the same number in
-    /// every pixel, or spp on average with each pixel's share in
-    /// proportion to its value in a pilot render.
+    /// every pixel, or spp on average with each pixel's share growing as
+    /// its value in a pilot render to the power 0.75.
     #[arg(long, value_enum, default_value = "adaptive")]
     allocation: Allocation,
     /// Render everything in full, even effects the scene does not call

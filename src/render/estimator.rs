@@ -274,9 +274,9 @@ pub struct Settings {
 pub enum Allocation {
     /// spp samples in every pixel.
     Uniform,
-    /// spp samples per pixel on average, each pixel's share in proportion
-    /// to its value in a pilot render, between [`ADAPTIVE_FLOOR`] and
-    /// [`ADAPTIVE_CAP`] times spp.
+    /// spp samples per pixel on average, each pixel's share growing as its
+    /// value in a pilot render to the power [`ADAPTIVE_GAMMA`], between
+    /// [`ADAPTIVE_FLOOR`] and [`ADAPTIVE_CAP`] times spp.
     #[default]
     Adaptive,
 }
