@@ -962,11 +962,7 @@ pub fn render(sv: &SvBssrdf, view: &View, settings: &Settings) -> Image {
     let channels = sv.channels();
     let scale = view.irradiance;
     let guided = settings.sampling != Sampling::Profile && albedo_varies(sv);
-    let counts = sample_counts(sv, view, settings, guided);
-    let stride = match settings.allocation {
-        Allocation::Uniform => settings.spp as u64,
-        Allocation::Adaptive => adaptive_cap(settings.spp),
-    };
+    let (counts, stride) = sample_counts(sv, view, settings, guided);
     let pixels: Vec<Vec<(f64, f64)>> = (0..n * n)
         .into_par_iter()
         .map_init(Scratch::default, |scratch, p| {
@@ -1008,12 +1004,13 @@ fn adaptive_cap(spp: u32) -> u64 {
 /// Separates the pilot's streams from the render's.
 const PILOT_STREAM: u64 = 0x9e37_79b9_7f4a_7c15;
 
-/// Each pixel's sample count (module docs, "Samples per pixel").
-fn sample_counts(sv: &SvBssrdf, view: &View, settings: &Settings, guided: bool) -> Vec<u64> {
+/// Each pixel's sample count (module docs, "Samples per pixel"), and the
+/// stride of the pixels' independent streams (the most any pixel can get).
+fn sample_counts(sv: &SvBssrdf, view: &View, settings: &Settings, guided: bool) -> (Vec<u64>, u64) {
     let n = view.resolution;
     let spp = settings.spp as u64;
     if settings.allocation == Allocation::Uniform {
-        return vec![spp; n * n];
+        return (vec![spp; n * n], spp);
     }
     let pilot = Settings {
         spp: PILOT_SPP,
@@ -1024,7 +1021,7 @@ fn sample_counts(sv: &SvBssrdf, view: &View, settings: &Settings, guided: bool) 
     // The pilot's pixels are 2 × 2 of the image's (its window of half-width
     // m·h, m = ⌈n/2⌉, covers the image's).
     let m = n.div_ceil(2);
-    let h = 2.0 * view.half_width / n as f64;
+    let (_, h) = view.pixel_corner(0, 0);
     let coarse = View {
         resolution: m,
         half_width: m as f64 * h,
@@ -1070,7 +1067,7 @@ fn sample_counts(sv: &SvBssrdf, view: &View, settings: &Settings, guided: bool) 
     } else {
         2
     };
-    share(&weight, spp, step)
+    (share(&weight, spp, step), adaptive_cap(settings.spp))
 }
 
 /// Shares n·spp samples among n pixels in proportion to `weight`, each
