@@ -70,10 +70,10 @@ pub struct PairGrid {
     pub extent: f64,
     /// The first- and last-vertex histograms have `vertex_refine` times as
     /// many bins along each axis as the all-vertex one
-    /// ([`PairGrid::for_class`]). One vertex lies in a core of σ ≈ 0.1 MFP
-    /// around its end of the pair, narrower than the default bin of λ/4
-    /// (≥ 0.26 MFP): on bins of λ/8 the fit sees that core (docs/method.md
-    /// §3, "Grids"). The
+    /// ([`PairGrid::for_class`]). One vertex lies in a core of σ ≈ 0.02–0.1
+    /// MFP around its end of the pair, far narrower than the default bin of
+    /// λ/4 (≥ 0.26 MFP): on bins of λ/16 the fit sees that core
+    /// (docs/method.md §3, "Grids"). The
     /// all-vertex density is smooth on the coarse grid, and there its fit
     /// keeps the tails that aggregation needs. 1 (no refinement) is not
     /// written, so documents and content hashes from before the refinement
@@ -96,7 +96,7 @@ impl Default for PairGrid {
             nu: 32,
             nv: 16,
             extent: 4.0,
-            vertex_refine: 2,
+            vertex_refine: 4,
         }
     }
 }
@@ -1558,10 +1558,10 @@ mod tests {
     #[test]
     fn vertex_classes_are_binned_on_their_own_grid() {
         // Two vertices 0.15 λ apart across the axis share a bin of λ/4 in
-        // the all-vertex histogram and fall in two bins of λ/8 in the
+        // the all-vertex histogram and fall in two bins of λ/16 in the
         // last-vertex one.
         let grid = PairGrid::default();
-        assert_eq!(grid.vertex_refine, 2);
+        assert_eq!(grid.vertex_refine, 4);
         let mut c = CellTally::new(&grid);
         let mut scratch = Vec::new();
         for s in [0.05, 0.2] {
@@ -1569,9 +1569,9 @@ mod tests {
         }
         let all = c.normalized(&grid, VertexClass::All, 0.5, 1.0, 1.0);
         let last = c.normalized(&grid, VertexClass::Last, 0.5, 1.0, 1.0);
-        assert_eq!((all.mass.len(), last.mass.len()), (32 * 16, 64 * 32));
+        assert_eq!((all.mass.len(), last.mass.len()), (32 * 16, 128 * 64));
         assert_eq!(all.v_edges[1], 0.25);
-        assert_eq!(last.v_edges[1], 0.125);
+        assert_eq!(last.v_edges[1], 0.0625);
         assert_eq!(all.mass[grid.index(0.0, 0.05)], 1.0);
         let fine = grid.for_class(VertexClass::Last);
         assert_eq!(last.mass[fine.index(0.0, 0.05)], 0.5);

@@ -113,7 +113,7 @@ pub fn training_config() -> KernelConfig {
             nu: 32,
             nv: 16,
             extent: 4.0,
-            vertex_refine: 2,
+            vertex_refine: 4,
         },
         runs: Vec::new(),
     }
