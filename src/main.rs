@@ -692,8 +692,8 @@ enum Fit {
         #[arg(long)]
         report: Option<PathBuf>,
         /// Gaussian components K of the all-vertex and of the last-vertex
-        /// kernels, e.g. 3,5 (one number: the same K for both).
-        #[arg(long, value_delimiter = ',', default_value = "3,5",
+        /// kernels, e.g. 4,5 (one number: the same K for both).
+        #[arg(long, value_delimiter = ',', default_value = "4,5",
               value_parser = RangedU64ValueParser::<usize>::new().range(1..=5))]
         components: Vec<usize>,
         /// Polynomial degrees in ln d and sqrt(1 − α), e.g. 3,3.
@@ -1359,7 +1359,7 @@ fn fit(f: Fit) -> Result<()> {
             let components = match components[..] {
                 [k] => Components::from(k),
                 [all, last] => Components { all, last },
-                _ => bail!("invalid --components: give K or K_ALL,K_LAST, e.g. 3,5"),
+                _ => bail!("invalid --components: give K or K_ALL,K_LAST, e.g. 4,5"),
             };
             let [dx, dy] = degree[..] else {
                 bail!("invalid --degree: give two degrees, e.g. 3,3");

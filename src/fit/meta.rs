@@ -740,9 +740,10 @@ pub struct MetaModelFit {
 }
 
 /// Gaussian components of the meta-model, per vertex class. The shipped
-/// model has 3 for all vertices and 4 for the last one, whose core around
-/// x_e and tail toward x_i three isotropic Gaussians do not both hold
-/// (docs/method.md §4).
+/// model has 4 for all vertices (a point under x_i, a lobe near x_e and
+/// the interior at two widths) and 5 for the last one, whose sharp core
+/// around x_e, shoulder and tail toward x_i fewer isotropic Gaussians do
+/// not all hold (docs/method.md §4).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Components {
     pub all: usize,
