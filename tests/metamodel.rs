@@ -120,7 +120,7 @@ fn kernel_query_command() {
     let (ok, v, _) = query(&["--d", "1", "--albedo", "0.9", "--json"]);
     assert!(ok);
     let comps = v["components"].as_array().unwrap();
-    assert_eq!(comps.len(), 3);
+    assert_eq!(comps.len(), 4, "the shipped all-vertex kernel has four");
     let w: f64 = comps.iter().map(|c| c["weight"].as_f64().unwrap()).sum();
     assert!((w - 1.0).abs() < 1e-12);
     for c in comps {
