@@ -278,9 +278,9 @@ fn first_vertex_lies_below_the_entry_point() {
     assert!((h.mass.iter().sum::<f64>() + h.overflow - 1.0).abs() < 1e-12);
     // Every first vertex in the bins of v = 0 that u(d_p) crosses.
     let g = c.grid.for_class(VertexClass::First);
-    let bin = |u: f64| ((u + g.extent) / (2.0 * g.extent) * g.nu as f64) as usize;
-    let below: f64 = (bin(u_of(1.1))..=bin(u_of(0.9)))
-        .map(|iu| h.mass[iu * g.nv])
+    let below: f64 = (g.index(u_of(1.1), 0.0)..=g.index(u_of(0.9), 0.0))
+        .step_by(g.nv)
+        .map(|b| h.mass[b])
         .sum();
     assert!((below - 1.0).abs() < 1e-12, "{below}");
     // The last vertex is spread around x_e, the all-vertex kernel in between.
