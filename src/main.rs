@@ -856,6 +856,13 @@ struct KernelArgs {
     /// each sized from the tally so far for the cells still short.
     #[arg(long, default_value_t = 3)]
     top_ups: usize,
+    /// With --min-paths: top up this finished tally instead of planning a
+    /// new one. Its configuration (medium, cells, grid, seed and runs) and
+    /// paths are kept, and only the cells below --min-paths get more paths,
+    /// from streams that continue the tally's own; the configuration flags
+    /// are not read.
+    #[arg(long, requires = "min_paths", conflicts_with = "shard")]
+    from: Option<PathBuf>,
     #[command(flatten)]
     run: RunArgs,
 }
@@ -951,12 +958,23 @@ fn simulate_kernels(a: KernelArgs) -> Result<()> {
         runs: Vec::new(),
     };
     config.validate()?;
-    let (config, tally, wall_s) = match a.min_paths {
-        None => {
+    let (config, tally, wall_s) = match (a.min_paths, &a.from) {
+        (Some(target), Some(from)) => {
+            let doc: KernelDoc = svkernel::jobs::store::read_json(from)?;
+            if doc.shard.is_some() {
+                anyhow::bail!(
+                    "{}: a shard of a tally (merge the shards with `svkernel merge` first)",
+                    from.display()
+                );
+            }
+            let start = Rounds::finished(doc.config, doc.tally, doc.wall_s);
+            run_with_top_ups(start, target, a.run.paths, a.top_ups, &a.run.out, &opts)?
+        }
+        (None, _) => {
             let (tally, wall_s) = config.run(shard, &opts)?;
             (config, tally, wall_s)
         }
-        Some(target) => {
+        (Some(target), None) => {
             let plan = kernel::PlanOptions {
                 target,
                 max_paths: a.run.paths,
@@ -969,7 +987,14 @@ fn simulate_kernels(a: KernelArgs) -> Result<()> {
                 let (tally, wall_s) = planned.run(shard, &opts)?;
                 (planned, tally, wall_s)
             } else {
-                run_with_top_ups(planned, target, a.run.paths, a.top_ups, &a.run.out, &opts)?
+                let start = Rounds {
+                    plan: planned.clone(),
+                    config: planned,
+                    tally: None,
+                    wall_s: 0.0,
+                    round: 0,
+                };
+                run_with_top_ups(start, target, a.run.paths, a.top_ups, &a.run.out, &opts)?
             }
         }
     };
@@ -981,26 +1006,45 @@ fn simulate_kernels(a: KernelArgs) -> Result<()> {
     Ok(())
 }
 
-/// Runs a planned simulation, then up to `top_ups` rounds of
-/// [`KernelConfig::top_up`] where cells fell short. Each finished round is
-/// kept in `OUT.rounds` (configuration and tally), so that `--resume` after
-/// a kill loses at most the running round's last checkpoint interval.
+/// The state of a planned simulation between top-up rounds, kept in
+/// `OUT.rounds` so that `--resume` after a kill loses at most the running
+/// round's last checkpoint interval.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct Rounds {
+    /// The configuration the rounds started from (a plan, or a finished
+    /// tally's): a kept state resumes only the same start.
+    plan: KernelConfig,
+    config: KernelConfig,
+    /// `None` until the plan itself has run.
+    tally: Option<kernel::KernelTally>,
+    wall_s: f64,
+    round: usize,
+}
+
+impl Rounds {
+    /// A finished tally, before any top-up round of its own.
+    fn finished(config: KernelConfig, tally: kernel::KernelTally, wall_s: f64) -> Self {
+        Rounds {
+            plan: config.clone(),
+            config,
+            tally: Some(tally),
+            wall_s,
+            round: 0,
+        }
+    }
+}
+
+/// Runs the start's configuration unless its tally is already there, then
+/// up to `top_ups` rounds of [`KernelConfig::top_up`] where cells fell
+/// short. Each finished round is kept in `OUT.rounds`.
 fn run_with_top_ups(
-    planned: KernelConfig,
+    start: Rounds,
     target: f64,
     max_paths: u64,
     top_ups: usize,
     out: &std::path::Path,
     opts: &RunOptions,
 ) -> Result<(KernelConfig, kernel::KernelTally, f64)> {
-    #[derive(serde::Serialize, serde::Deserialize)]
-    struct Rounds {
-        plan: KernelConfig,
-        config: KernelConfig,
-        tally: kernel::KernelTally,
-        wall_s: f64,
-        round: usize,
-    }
     let rounds_path = {
         let mut s = out.as_os_str().to_owned();
         s.push(".rounds");
@@ -1008,28 +1052,22 @@ fn run_with_top_ups(
     };
     let kept: Option<Rounds> = if opts.resume && rounds_path.exists() {
         let r: Rounds = svkernel::jobs::store::read_json(&rounds_path)?;
-        (r.plan == planned).then_some(r)
+        (r.plan == start.plan && r.tally.is_some()).then_some(r)
     } else {
         None
     };
-    let mut state = match kept {
-        Some(r) => r,
-        None => {
-            let (tally, wall_s) = planned.run(None, opts)?;
-            Rounds {
-                plan: planned.clone(),
-                config: planned,
-                tally,
-                wall_s,
-                round: 0,
-            }
-        }
-    };
+    let mut state = kept.unwrap_or(start);
+    if state.tally.is_none() {
+        let (tally, wall_s) = state.config.run(None, opts)?;
+        state.tally = Some(tally);
+        state.wall_s += wall_s;
+    }
     while state.round < top_ups {
         // The finished round is kept; its chunk checkpoint is spent.
         svkernel::jobs::store::write_json_compact_atomic(&rounds_path, &state)?;
         remove_checkpoint(out)?;
-        let Some(grown) = state.config.top_up(&state.tally, target, max_paths) else {
+        let tally = state.tally.as_mut().expect("the start has run");
+        let Some(grown) = state.config.top_up(tally, target, max_paths) else {
             break;
         };
         let range = (state.config.chunks(), grown.chunks());
@@ -1044,7 +1082,7 @@ fn run_with_top_ups(
         );
         let (extra, wall_s) = grown.run_chunks(range, opts)?;
         use svkernel::forward::runner::Tally as _;
-        state.tally.merge(&extra);
+        tally.merge(&extra);
         state.wall_s += wall_s;
         state.config = grown;
         state.round += 1;
@@ -1053,19 +1091,26 @@ fn run_with_top_ups(
         std::fs::remove_file(&rounds_path)
             .with_context(|| format!("removing {}", rounds_path.display()))?;
     }
-    Ok((state.config, state.tally, state.wall_s))
+    let tally = state.tally.expect("the start has run");
+    Ok((state.config, tally, state.wall_s))
 }
 
 fn print_plan(config: &KernelConfig, cells: &[kernel::PlannedCell]) {
     use std::io::Write;
     let mut text = format!(
-        "plan: {} runs, {:.3e} paths\n   α        d   stretch  bias forced   pilot paths → contributing   expected effective\n",
+        "plan: {} runs, {:.3e} paths\n   α        d   stretch  bias forced   pilot paths → contributing   expected effective   run paths\n",
         config.runs.len(),
         config.paths as f64
     );
     for c in cells {
+        let run_paths = config
+            .albedos
+            .iter()
+            .position(|&a| a == c.albedo)
+            .zip(config.distances.iter().position(|&d| d == c.d))
+            .map_or(0, |(ia, id)| config.launched_for(ia, id));
         text += &format!(
-            "{:6.4} {:8.3} {:9.3} {:5.2} {:6} {:13} → {:12} {:20.0}\n",
+            "{:6.4} {:8.3} {:9.3} {:5.2} {:6} {:13} → {:12} {:20.0} {:11.3e}\n",
             c.albedo,
             c.d,
             c.flights.stretch,
@@ -1073,7 +1118,8 @@ fn print_plan(config: &KernelConfig, cells: &[kernel::PlannedCell]) {
             c.flights.forced,
             c.pilot_paths,
             c.pilot_contributing,
-            c.expected
+            c.expected,
+            run_paths as f64
         );
     }
     let _ = std::io::stderr().lock().write_all(text.as_bytes());

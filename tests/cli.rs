@@ -905,3 +905,71 @@ fn planned_kernel_simulation_with_bounded_top_ups() {
     assert!(!d.join("k.json.rounds").exists() && !d.join("k.json.ckpt").exists());
     std::fs::remove_dir_all(&d).unwrap();
 }
+
+/// `--from` tops up a finished tally: the result is the tally that the
+/// same plan with one top-up round gives in one command, bit for bit, and
+/// the tally it started from is kept as its first runs.
+#[test]
+fn kernel_top_up_from_a_finished_tally() {
+    let d = tmpdir("topup_from");
+    let run = |extra: &[&str], out: &str| {
+        let o = bin()
+            .args([
+                "simulate",
+                "kernels",
+                "--albedos",
+                "0.5",
+                "--distances",
+                "1,4",
+                "--nu",
+                "8",
+                "--nv",
+                "4",
+                "--min-paths",
+                "1e9",
+                "--paths",
+                "1e6",
+            ])
+            .args(extra)
+            .arg("--out")
+            .arg(d.join(out))
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr).to_string();
+        assert!(o.status.success(), "{err}");
+        (json(&d.join(out)), err)
+    };
+    let (plan, _) = run(&["--top-ups", "0"], "plan.json");
+    let from = d.join("plan.json");
+    let (topped, err) = run(
+        &["--top-ups", "1", "--from", from.to_str().unwrap()],
+        "topped.json",
+    );
+    assert!(err.contains("top-up 1"), "{err}");
+    assert!(
+        !err.contains("plan:"),
+        "a top-up does not plan again: {err}"
+    );
+    let (direct, _) = run(&["--top-ups", "1"], "direct.json");
+    assert_eq!(topped["config"], direct["config"]);
+    assert_eq!(topped["tally"], direct["tally"]);
+    let runs = |doc: &serde_json::Value| doc["config"]["runs"].as_array().unwrap().clone();
+    let (before, after) = (runs(&plan), runs(&topped));
+    assert!(after.len() > before.len());
+    assert_eq!(after[..before.len()], before[..]);
+    assert!(topped["paths"].as_u64().unwrap() > plan["paths"].as_u64().unwrap());
+    assert!(!d.join("topped.json.rounds").exists() && !d.join("topped.json.ckpt").exists());
+
+    // A missing tally is an error that names the file, and nothing is written.
+    let o = bin()
+        .args(["simulate", "kernels", "--min-paths", "10", "--from"])
+        .arg(d.join("missing.json"))
+        .arg("--out")
+        .arg(d.join("none.json"))
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("missing.json"));
+    assert!(!d.join("none.json").exists());
+    std::fs::remove_dir_all(&d).unwrap();
+}

@@ -8,7 +8,7 @@ use svkernel::forward::maps::{AlbedoMap, TexelMap};
 use svkernel::forward::medium::{Medium, Source};
 use svkernel::forward::rng::{PathRng, threshold_u32};
 use svkernel::forward::runner::{RunOptions, Shard, Tally, shard_range};
-use svkernel::forward::walk::{AlbedoField, Fate, Flights, launch, walk_general};
+use svkernel::forward::walk::{AlbedoField, Fate, Flights, launch, max_bias, walk_general};
 use svkernel::provenance::Provenance;
 use svkernel::testing::Z_MC;
 
@@ -208,6 +208,57 @@ fn a_plan_fills_the_cells_analog_walks_miss() {
     }
     // Planning is deterministic.
     assert_eq!(c.plan(&opts, false).unwrap().0, planned);
+}
+
+/// The bound on the exponential transform's bias: at g = 0 it is the root
+/// κ of the dispersion relation of isotropic scattering, tabulated as
+/// ν₀ = 1/κ (Case & Zweifel, *Linear Transport Theory*, 1967: 1.04438 at
+/// α = 0.5, 1.90320 at α = 0.9); it falls as α rises and as g does. A plan
+/// walks no sampling beyond it, and one with nothing left is an error.
+#[test]
+fn a_plan_walks_no_exponential_transform_beyond_its_bound() {
+    assert!((1.0 / max_bias(0.5, 0.0) - 1.04438).abs() < 1e-4);
+    assert!((1.0 / max_bias(0.9, 0.0) - 1.90320).abs() < 1e-4);
+    let b: Vec<f64> = [0.2, 0.4, 0.6, 0.75, 0.85, 0.92, 0.96, 0.99]
+        .iter()
+        .map(|&a| max_bias(a, 0.3))
+        .collect();
+    assert!(b.windows(2).all(|w| w[1] < w[0]), "{b:?}");
+    assert!(max_bias(0.6, 0.3) < max_bias(0.6, 0.0));
+    // At α = 0.75 (bound 0.66 at g = 0.3), bias 0.93 is left out.
+    let strong = Flights {
+        stretch: 1.0,
+        bias: 0.93,
+        forced: 2,
+    };
+    assert!(!strong.bounded_weights(0.75, 0.3) && strong.bounded_weights(0.2, 0.3));
+    let c = config(&[0.75], &[1.0, 6.5], 1.0, 1, 43);
+    let opts = PlanOptions {
+        target: 100.0,
+        max_paths: 1 << 20,
+        pilot: 1 << 12,
+        flights: vec![Flights::ANALOG, strong],
+        bias_fractions: vec![0.6],
+    };
+    let (planned, cells) = c.plan(&opts, false).unwrap();
+    assert_eq!(cells.len(), 2);
+    for r in &planned.runs {
+        assert!(r.flights.bounded_weights(0.75, 0.3), "{:?}", r.flights);
+        assert_ne!(r.flights, strong);
+    }
+    // The far cell goes to the transform at 0.6 of the bound.
+    let far = cells.iter().find(|p| p.d == 6.5).unwrap();
+    assert!(
+        (far.flights.bias - 0.6 * max_bias(0.75, 0.3)).abs() < 1e-12,
+        "{far:?}"
+    );
+    let none = PlanOptions {
+        flights: vec![strong],
+        bias_fractions: Vec::new(),
+        ..opts
+    };
+    let err = c.plan(&none, false).unwrap_err().to_string();
+    assert!(err.contains("flights"), "{err}");
 }
 
 /// χ² between two independent normalised histograms over bins with data.

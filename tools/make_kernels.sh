@@ -4,11 +4,14 @@
 # medium (η = 1.5, g = 0.3, ρ = 1) under a pencil beam, at 8 albedos and 10
 # pair distances (bins d·(1 ± 0.1)). The simulation is planned per cell
 # (docs/method.md §3): each cell gets the flight sampling its pilot found
-# best and paths for 20000 effective contributing paths, one round
-# (7.4e8 paths). About 3–4 minutes on 2 cores.
+# best and paths for 40000 effective contributing paths, one round
+# (1.29e9 paths). Then one top-up round gives every cell still below 2000
+# effective paths more paths from its own walk (6.1e7 paths). About 17
+# minutes on 2 cores in all.
 #
 #   bash tools/make_kernels.sh                 # the shipped training set
-#   SHARD=k/N bash tools/make_kernels.sh       # one slice (merge with `svkernel merge`)
+#   SHARD=k/N bash tools/make_kernels.sh       # one slice of the plan (merge the
+#       slices with `svkernel merge`, then run the top-up below on the merged file)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 out=${OUT:-data/kernels/eta1.5_g0.3_pencil.json}
@@ -20,5 +23,9 @@ if [ -n "${SHARD:-}" ]; then shard_args=(--shard "$SHARD"); out="${out%.json}.sh
   --albedos 0.2,0.4,0.6,0.75,0.85,0.92,0.96,0.99 \
   --distances 0.1,0.2,0.35,0.6,1,1.6,2.5,4,6.5,10 \
   --rel-width 0.1 --min-order 2 --eta 1.5 --g 0.3 --density 1 \
-  --min-paths 20000 --top-ups 0 --paths 4e9 --seed 3000 "${shard_args[@]}" --resume \
+  --min-paths 40000 --top-ups 0 --paths 4e9 --seed 3000 "${shard_args[@]}" --resume \
   --out "$out" | sed -n 1p
+if [ -z "${SHARD:-}" ]; then
+  ./target/release/svkernel simulate kernels --from "$out" \
+    --min-paths 2000 --top-ups 1 --paths 4e9 --resume --out "$out" | sed -n 1p
+fi

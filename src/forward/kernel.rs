@@ -46,7 +46,7 @@
 use super::medium::Medium;
 use super::rng::{PathRng, splitmix64, threshold_u32, unit_f64};
 use super::runner::{self, RunOptions, Shard, Tally, chunk_paths, shard_range};
-use super::walk::{Fate, Flights, Launched, UniformAlbedo, launch, walk_transformed};
+use super::walk::{Fate, Flights, Launched, UniformAlbedo, launch, max_bias, walk_transformed};
 use crate::error::{Error, Result};
 use crate::forward::medium::Source;
 use crate::provenance::Provenance;
@@ -518,8 +518,15 @@ pub struct PlanOptions {
     pub max_paths: u64,
     /// Pilot paths per (albedo, flight sampling), before growing.
     pub pilot: u64,
-    /// The flight samplings to choose from.
+    /// The flight samplings to choose from (those whose weights are
+    /// unbounded at an albedo, [`Flights::bounded_weights`], are left out
+    /// there).
     pub flights: Vec<Flights>,
+    /// Also, at each albedo, exponential transforms (first two collisions
+    /// forced) with biases at these fractions of [`max_bias`]: the
+    /// strongest bias that the albedo allows follows its asymptotic decay
+    /// rate, which a fixed list cannot.
+    pub bias_fractions: Vec<f64>,
 }
 
 impl Default for PlanOptions {
@@ -544,6 +551,7 @@ impl Default for PlanOptions {
                 forced,
             })
             .to_vec(),
+            bias_fractions: vec![0.6, 0.85],
         }
     }
 }
@@ -974,18 +982,50 @@ impl KernelConfig {
         for f in &opts.flights {
             check_flights(f, "flights")?;
         }
+        if let Some(q) = opts
+            .bias_fractions
+            .iter()
+            .find(|q| !(**q > 0.0 && **q < 1.0))
+        {
+            return Err(Error::param("bias_fractions", q, "in (0, 1)"));
+        }
         let nd = self.distances.len();
         let bar =
             crate::progress::Task::new(progress, "planning", self.albedos.len() as u64, "albedos");
         let (mut runs, mut cells) = (Vec::new(), Vec::new());
         for ia in 0..self.albedos.len() {
+            // The candidates: the given samplings whose weights keep a
+            // bounded variance over long paths (a pilot cannot see an
+            // unbounded one, and would size its run on a variance estimate
+            // that does not converge), then the exponential transforms at
+            // the given fractions of this albedo's bound. Each keeps its own
+            // pilot streams, by its index among all candidates.
+            let alpha = self.albedos[ia];
+            let beta_max = max_bias(alpha, self.g);
+            let cands: Vec<(usize, Flights)> = opts
+                .flights
+                .iter()
+                .copied()
+                .chain(opts.bias_fractions.iter().map(|&q| Flights {
+                    stretch: 1.0,
+                    bias: q * beta_max,
+                    forced: 2,
+                }))
+                .enumerate()
+                .filter(|(_, f)| f.bounded_weights(alpha, self.g))
+                .collect();
+            if cands.is_empty() {
+                return Err(Error::param(
+                    "flights",
+                    format!("(none bounded at albedo {alpha})"),
+                    "a flight sampling whose bias is below max_bias(albedo, g)",
+                ));
+            }
             let mut pilot = opts.pilot.max(1);
             let stats = loop {
-                let stats: Vec<Pilot> = opts
-                    .flights
+                let stats: Vec<Pilot> = cands
                     .iter()
-                    .enumerate()
-                    .map(|(ic, &f)| base.pilot(ia, ic, f, pilot))
+                    .map(|&(ic, f)| base.pilot(ia, ic, f, pilot))
                     .collect();
                 let thin = (0..nd).any(|id| stats.iter().all(|p| p.count[id] < PILOT_MIN_PATHS));
                 if !thin || pilot >= opts.pilot.max(1) * 64 {
@@ -1045,7 +1085,7 @@ impl KernelConfig {
                     .unwrap_or(0);
                 let chunk = runner::CHUNK_PATHS;
                 let paths = need.min(opts.max_paths).div_ceil(chunk).max(1) * chunk;
-                let f = opts.flights[ic];
+                let f = cands[ic].1;
                 let unit_log2 = if f == Flights::ANALOG {
                     0
                 } else {

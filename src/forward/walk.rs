@@ -307,6 +307,51 @@ impl Flights {
         bias: 0.0,
         forced: 0,
     };
+
+    /// Whether the path weights of these flights keep a finite variance over
+    /// long paths in a medium of albedo `albedo` and HG parameter `g`: the
+    /// exponential transform's bias must stay below [`max_bias`].
+    /// Stretched flights (β = 0) are not judged here and are left to the
+    /// pilots. By the same argument their factor per collision is
+    /// α/(c(2 − c)), unbounded for c = 2 and above 1 at high albedo for any
+    /// c ≠ 1; the near cells they serve fill mostly from short paths, but
+    /// at α ≥ 0.96, d = 0.1 MFP their efficiency falls as paths are added
+    /// (docs/measurements.md, "The exponential transform's bound").
+    pub fn bounded_weights(&self, albedo: f64, g: f64) -> bool {
+        self.bias == 0.0 || self.bias < max_bias(albedo, g)
+    }
+}
+
+/// The largest bias β of the exponential transform (flights at rate
+/// σ_t(1 − βμ), [`walk_transformed`]) whose path weights keep a finite
+/// second moment at albedo `albedo` and HG parameter `g`, in units of σ_t:
+///
+///   β_max = (1 − αg)·κ(α′),  α′ = α(1 − g)/(1 − αg).
+///
+/// A flight along μ drawn at rate σ_t(1 − βμ) weighs w = e^(−σ_tβμs)/(1 − βμ),
+/// with E[w² | μ] = 1/(1 − β²μ²); over isotropic directions (μ uniform on
+/// [−1, 1]) that is artanh(β)/β. A path goes on after a collision with
+/// probability α, so the second moment of its weight, Σ_n (α·artanh(β)/β)^n,
+/// is finite only if α·artanh(β)/β < 1: β below κ, the root of the
+/// dispersion relation of isotropic scattering (α/κ)·artanh(κ) = 1, which is
+/// the flux's asymptotic decay rate in units of σ_t (Case & Zweifel 1967).
+/// With anisotropic scattering the directions of successive flights are
+/// correlated, so a path compounds more outward flights; the similarity
+/// relations (Wyman, Patterson & Wilson 1989) carry that in, as the
+/// isotropic medium of albedo α′ and σ_t′ = (1 − αg)σ_t. Dimensionless.
+pub fn max_bias(albedo: f64, g: f64) -> f64 {
+    let a = (albedo * (1.0 - g) / (1.0 - albedo * g)).clamp(0.0, 1.0);
+    // f(κ) = a·artanh(κ)/κ − 1 rises from a − 1 ≤ 0 at κ = 0 to +∞ at κ = 1.
+    let (mut lo, mut hi) = (0.0f64, 1.0f64);
+    for _ in 0..60 {
+        let k = 0.5 * (lo + hi);
+        if a * k.atanh() / k < 1.0 {
+            lo = k;
+        } else {
+            hi = k;
+        }
+    }
+    (1.0 - albedo * g) * lo
 }
 
 /// The walk of [`walk_general`] with its free flights drawn as `flights`
