@@ -858,6 +858,25 @@ fn commands_work_from_an_empty_folder() {
     assert!(!d.join("data").exists() && !d.join("out").exists());
 }
 
+/// A small planned kernel simulation whose target (1e9 effective paths per
+/// cell) is out of reach, so a top-up is always due.
+const SMALL_PLAN: [&str; 14] = [
+    "simulate",
+    "kernels",
+    "--albedos",
+    "0.5",
+    "--distances",
+    "1,4",
+    "--nu",
+    "8",
+    "--nv",
+    "4",
+    "--min-paths",
+    "1e9",
+    "--paths",
+    "1e6",
+];
+
 /// A planned kernel simulation from the command line: the plan goes to
 /// stderr, the document records its runs, `--top-ups 0` runs the plan
 /// alone, and no round file is left behind.
@@ -866,25 +885,8 @@ fn planned_kernel_simulation_with_bounded_top_ups() {
     let d = tmpdir("planned");
     let out = d.join("k.json");
     let o = bin()
-        .args([
-            "simulate",
-            "kernels",
-            "--albedos",
-            "0.5",
-            "--distances",
-            "1,4",
-            "--nu",
-            "8",
-            "--nv",
-            "4",
-            "--min-paths",
-            "1e9",
-            "--top-ups",
-            "0",
-            "--paths",
-            "1e6",
-            "--out",
-        ])
+        .args(SMALL_PLAN)
+        .args(["--top-ups", "0", "--out"])
         .arg(&out)
         .output()
         .unwrap();
@@ -914,22 +916,7 @@ fn kernel_top_up_from_a_finished_tally() {
     let d = tmpdir("topup_from");
     let run = |extra: &[&str], out: &str| {
         let o = bin()
-            .args([
-                "simulate",
-                "kernels",
-                "--albedos",
-                "0.5",
-                "--distances",
-                "1,4",
-                "--nu",
-                "8",
-                "--nv",
-                "4",
-                "--min-paths",
-                "1e9",
-                "--paths",
-                "1e6",
-            ])
+            .args(SMALL_PLAN)
             .args(extra)
             .arg("--out")
             .arg(d.join(out))
