@@ -960,10 +960,10 @@ fn simulate_kernels(a: KernelArgs) -> Result<()> {
     config.validate()?;
     let (config, tally, wall_s) = match (a.min_paths, &a.from) {
         (Some(target), Some(from)) => {
-            let doc: KernelDoc = svkernel::jobs::store::read_json(from)?;
+            let doc = KernelDoc::load(from)?;
             if doc.shard.is_some() {
-                anyhow::bail!(
-                    "{}: a shard of a tally (merge the shards with `svkernel merge` first)",
+                bail!(
+                    "{}: key 'shard': a shard of a tally (merge the shards with `svkernel merge` first)",
                     from.display()
                 );
             }
@@ -987,13 +987,7 @@ fn simulate_kernels(a: KernelArgs) -> Result<()> {
                 let (tally, wall_s) = planned.run(shard, &opts)?;
                 (planned, tally, wall_s)
             } else {
-                let start = Rounds {
-                    plan: planned.clone(),
-                    config: planned,
-                    tally: None,
-                    wall_s: 0.0,
-                    round: 0,
-                };
+                let start = Rounds::planned(planned);
                 run_with_top_ups(start, target, a.run.paths, a.top_ups, &a.run.out, &opts)?
             }
         }
@@ -1022,6 +1016,17 @@ struct Rounds {
 }
 
 impl Rounds {
+    /// A plan that has not run yet.
+    fn planned(config: KernelConfig) -> Self {
+        Rounds {
+            plan: config.clone(),
+            config,
+            tally: None,
+            wall_s: 0.0,
+            round: 0,
+        }
+    }
+
     /// A finished tally, before any top-up round of its own.
     fn finished(config: KernelConfig, tally: kernel::KernelTally, wall_s: f64) -> Self {
         Rounds {
