@@ -8,7 +8,9 @@ use svkernel::forward::maps::{AlbedoMap, TexelMap};
 use svkernel::forward::medium::{Medium, Source};
 use svkernel::forward::rng::{PathRng, threshold_u32};
 use svkernel::forward::runner::{RunOptions, Shard, Tally, shard_range};
-use svkernel::forward::walk::{AlbedoField, Fate, Flights, launch, max_bias, walk_general};
+use svkernel::forward::walk::{
+    AlbedoField, Fate, Flights, launch, max_bias, max_stretch_offset, walk_general,
+};
 use svkernel::provenance::Provenance;
 use svkernel::testing::Z_MC;
 
@@ -239,6 +241,7 @@ fn a_plan_walks_no_exponential_transform_beyond_its_bound() {
         pilot: 1 << 12,
         flights: vec![Flights::ANALOG, strong],
         bias_fractions: vec![0.6],
+        stretch_fractions: Vec::new(),
     };
     let (planned, cells) = c.plan(&opts, false).unwrap();
     assert_eq!(cells.len(), 2);
@@ -259,6 +262,66 @@ fn a_plan_walks_no_exponential_transform_beyond_its_bound() {
     };
     let err = c.plan(&none, false).unwrap_err().to_string();
     assert!(err.contains("flights"), "{err}");
+}
+
+/// The stretch's bound: a flight drawn at rate c·σ_t weighs e^((c − 1)σ_t s)/c,
+/// whose second moment 1/(c(2 − c)) (checked here by sampling) grows by the
+/// albedo per collision, so |c − 1| < √(1 − α). Flights twice as dense are
+/// unbounded at every albedo; a plan walks the stretches its albedo allows.
+#[test]
+fn a_plan_walks_no_stretch_beyond_its_bound() {
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand::rngs::StdRng::seed_from_u64(7);
+    let c = 1.2f64;
+    let n = 400_000;
+    let m2 = (0..n)
+        .map(|_| {
+            let s = -(1.0 - rng.random::<f64>()).ln() / c;
+            ((c - 1.0) * s).exp().powi(2) / (c * c)
+        })
+        .sum::<f64>()
+        / n as f64;
+    let exact = 1.0 / (c * (2.0 - c));
+    assert!((m2 / exact - 1.0).abs() < 0.01, "{m2} against {exact}");
+    assert!((max_stretch_offset(0.96) - 0.2).abs() < 1e-12);
+    let twice = Flights {
+        stretch: 2.0,
+        bias: 0.0,
+        forced: 0,
+    };
+    let mild = Flights {
+        stretch: 1.2,
+        ..twice
+    };
+    for a in [0.0, 0.2, 0.6, 0.96, 0.99] {
+        assert!(!twice.bounded_weights(a, 0.3), "α = {a}");
+    }
+    assert!(mild.bounded_weights(0.9, 0.3) && !mild.bounded_weights(0.99, 0.3));
+    let cfg = config(&[0.96], &[0.1, 1.0], 1.0, 1, 47);
+    let opts = PlanOptions {
+        target: 100.0,
+        max_paths: 1 << 20,
+        pilot: 1 << 12,
+        flights: vec![Flights::ANALOG, twice],
+        bias_fractions: Vec::new(),
+        stretch_fractions: vec![0.6],
+    };
+    let (planned, cells) = cfg.plan(&opts, false).unwrap();
+    assert_eq!(cells.len(), 2);
+    for r in &planned.runs {
+        assert!(r.flights.bounded_weights(0.96, 0.3), "{:?}", r.flights);
+        assert!(
+            r.flights == Flights::ANALOG || (r.flights.stretch - 1.12).abs() < 1e-12,
+            "{:?}",
+            r.flights
+        );
+    }
+    let bad = PlanOptions {
+        stretch_fractions: vec![1.0],
+        ..opts
+    };
+    let err = cfg.plan(&bad, false).unwrap_err().to_string();
+    assert!(err.contains("stretch_fractions"), "{err}");
 }
 
 /// χ² between two independent normalised histograms over bins with data.

@@ -46,7 +46,9 @@
 use super::medium::Medium;
 use super::rng::{PathRng, splitmix64, threshold_u32, unit_f64};
 use super::runner::{self, RunOptions, Shard, Tally, chunk_paths, shard_range};
-use super::walk::{Fate, Flights, Launched, UniformAlbedo, launch, max_bias, walk_transformed};
+use super::walk::{
+    Fate, Flights, Launched, UniformAlbedo, launch, max_bias, max_stretch_offset, walk_transformed,
+};
 use crate::error::{Error, Result};
 use crate::forward::medium::Source;
 use crate::provenance::Provenance;
@@ -527,6 +529,12 @@ pub struct PlanOptions {
     /// strongest bias that the albedo allows follows its asymptotic decay
     /// rate, which a fixed list cannot.
     pub bias_fractions: Vec<f64>,
+    /// Also, at each albedo, flights stretched by c = 1 + q·√(1 − α) for
+    /// each fraction q here (c·σ_t, shorter flights that keep paths near
+    /// x_i), with and without two forced collisions: the largest stretch
+    /// whose weights stay bounded, [`max_stretch_offset`], shrinks as the
+    /// albedo rises.
+    pub stretch_fractions: Vec<f64>,
 }
 
 impl Default for PlanOptions {
@@ -537,11 +545,9 @@ impl Default for PlanOptions {
             pilot: 1 << 16,
             flights: [
                 (1.0, 0.0, 0),
-                (2.0, 0.0, 0),
                 (1.0, 0.5, 0),
                 (1.0, 0.8, 0),
                 (1.0, 0.0, 2),
-                (2.0, 0.0, 2),
                 (1.0, 0.8, 2),
                 (1.0, 0.93, 2),
             ]
@@ -552,6 +558,7 @@ impl Default for PlanOptions {
             })
             .to_vec(),
             bias_fractions: vec![0.6, 0.85],
+            stretch_fractions: vec![0.6, 0.85],
         }
     }
 }
@@ -982,12 +989,13 @@ impl KernelConfig {
         for f in &opts.flights {
             check_flights(f, "flights")?;
         }
-        if let Some(q) = opts
-            .bias_fractions
-            .iter()
-            .find(|q| !(**q > 0.0 && **q < 1.0))
-        {
-            return Err(Error::param("bias_fractions", q, "in (0, 1)"));
+        for (key, fractions) in [
+            ("bias_fractions", &opts.bias_fractions),
+            ("stretch_fractions", &opts.stretch_fractions),
+        ] {
+            if let Some(q) = fractions.iter().find(|q| !(**q > 0.0 && **q < 1.0)) {
+                return Err(Error::param(key, q, "in (0, 1)"));
+            }
         }
         let nd = self.distances.len();
         let bar =
@@ -997,11 +1005,20 @@ impl KernelConfig {
             // The candidates: the given samplings whose weights keep a
             // bounded variance over long paths (a pilot cannot see an
             // unbounded one, and would size its run on a variance estimate
-            // that does not converge), then the exponential transforms at
-            // the given fractions of this albedo's bound. Each keeps its own
-            // pilot streams, by its index among all candidates.
+            // that does not converge), then the exponential transforms and
+            // the stretches at the given fractions of this albedo's bounds.
+            // Each keeps its own pilot streams, by its index among all
+            // candidates.
             let alpha = self.albedos[ia];
             let beta_max = max_bias(alpha, self.g);
+            let c_max = max_stretch_offset(alpha);
+            let stretched = opts.stretch_fractions.iter().flat_map(|&q| {
+                [0, 2].map(|forced| Flights {
+                    stretch: 1.0 + q * c_max,
+                    bias: 0.0,
+                    forced,
+                })
+            });
             let cands: Vec<(usize, Flights)> = opts
                 .flights
                 .iter()
@@ -1011,6 +1028,7 @@ impl KernelConfig {
                     bias: q * beta_max,
                     forced: 2,
                 }))
+                .chain(stretched)
                 .enumerate()
                 .filter(|(_, f)| f.bounded_weights(alpha, self.g))
                 .collect();
@@ -1018,7 +1036,7 @@ impl KernelConfig {
                 return Err(Error::param(
                     "flights",
                     format!("(none bounded at albedo {alpha})"),
-                    "a flight sampling whose bias is below max_bias(albedo, g)",
+                    "a flight sampling within max_bias(albedo, g) and max_stretch_offset(albedo)",
                 ));
             }
             let mut pilot = opts.pilot.max(1);

@@ -310,16 +310,29 @@ impl Flights {
 
     /// Whether the path weights of these flights keep a finite variance over
     /// long paths in a medium of albedo `albedo` and HG parameter `g`: the
-    /// exponential transform's bias must stay below [`max_bias`].
-    /// Stretched flights (β = 0) are not judged here and are left to the
-    /// pilots. By the same argument their factor per collision is
-    /// α/(c(2 − c)), unbounded for c = 2 and above 1 at high albedo for any
-    /// c ≠ 1; the near cells they serve fill mostly from short paths, but
-    /// at α ≥ 0.96, d = 0.1 MFP their efficiency falls as paths are added
-    /// (docs/measurements.md, "The exponential transform's bound").
+    /// exponential transform's bias must stay below [`max_bias`] and the
+    /// stretch within [`max_stretch_offset`] of 1. A sampling that both
+    /// stretches and biases is judged by each bound on its own.
     pub fn bounded_weights(&self, albedo: f64, g: f64) -> bool {
-        self.bias == 0.0 || self.bias < max_bias(albedo, g)
+        (self.bias == 0.0 || self.bias < max_bias(albedo, g))
+            && (self.stretch == 1.0 || (self.stretch - 1.0).abs() < max_stretch_offset(albedo))
     }
+}
+
+/// The largest |c − 1| of flights stretched by c (drawn at rate c·σ_t,
+/// [`walk_transformed`]) whose path weights keep a finite second moment at
+/// albedo `albedo`: √(1 − α). Dimensionless.
+///
+/// A flight of length s drawn at rate cσ_t weighs w = e^((c − 1)σ_t s)/c,
+/// and E[w²] = ∫ cσ_t e^(−cσ_t s) w² ds = 1/(c(2 − c)) for c < 2 (infinite
+/// from c = 2 on). A path goes on after a collision with probability α, so
+/// the second moment of its weight, Σ_n (α/(c(2 − c)))^n, is finite only
+/// if c(2 − c) > α, that is |c − 1| < √(1 − α). The flights' directions do
+/// not enter, so the bound holds for any phase function. It is the
+/// stretch's counterpart of [`max_bias`] (the same argument as Spanier &
+/// Gelbard 1969, §3.5, for the exponential transform).
+pub fn max_stretch_offset(albedo: f64) -> f64 {
+    (1.0 - albedo).max(0.0).sqrt()
 }
 
 /// The largest bias β of the exponential transform (flights at rate
