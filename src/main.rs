@@ -697,7 +697,7 @@ enum Fit {
               value_parser = RangedU64ValueParser::<usize>::new().range(1..=5))]
         components: Vec<usize>,
         /// Polynomial degrees in ln d and sqrt(1 − α), e.g. 3,3.
-        #[arg(long, value_delimiter = ',', default_value = "3,3")]
+        #[arg(long, value_delimiter = ',', default_value = "4,3")]
         degree: Vec<usize>,
     },
     /// Export a few cells of the meta-model fit (residuals, Jᵀr, Jacobian

@@ -5,8 +5,8 @@
 # pair distances (bins d·(1 ± 0.1)). The simulation is planned per cell
 # (docs/method.md §3): each cell gets the flight sampling its pilot found
 # best and paths for 40000 effective contributing paths, one round
-# (1.29e9 paths). Then one top-up round gives every cell still below 2000
-# effective paths more paths from its own walk (6.1e7 paths). About 17
+# (1.38e9 paths). Then one top-up round gives every cell still below 2000
+# effective paths more paths from its own walk (1.25e8 paths). About 17
 # minutes on 2 cores in all.
 #
 #   bash tools/make_kernels.sh                 # the shipped training set
