@@ -324,7 +324,7 @@ impl Flights {
 /// albedo `albedo`: √(1 − α). Dimensionless.
 ///
 /// A flight of length s drawn at rate cσ_t weighs w = e^((c − 1)σ_t s)/c,
-/// and E[w²] = ∫ cσ_t e^(−cσ_t s) w² ds = 1/(c(2 − c)) for c < 2 (infinite
+/// and E\[w²\] = ∫ cσ_t e^(−cσ_t s) w² ds = 1/(c(2 − c)) for c < 2 (infinite
 /// from c = 2 on). A path goes on after a collision with probability α, so
 /// the second moment of its weight, Σ_n (α/(c(2 − c)))^n, is finite only
 /// if c(2 − c) > α, that is |c − 1| < √(1 − α). The flights' directions do
