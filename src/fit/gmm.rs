@@ -87,17 +87,11 @@ pub const STALLED_CHI2: f64 = 1e-3;
 /// Weight W of the whole-plane moment residuals (module docs, "Moments"):
 /// a miss by the tolerance costs W² in χ².
 ///
-/// A cell's bins cost far more: at the shipped tally's count errors about
-/// 4000 in χ² for the all-vertex kernel (512 bins, χ²/dof ≈ 8) and 900 for
-/// the last vertex (8192 bins, χ²/dof ≈ 0.1). At W = 1 a 10 % miss in rms s
-/// cost 1 and the bins set the widths alone: rms s was within 10 % in 52
-/// (all) and 60 (last) of the 80 cells. W = 30 (a 10 % miss costs 900)
-/// brought that to 76 and 80, and lowered the worst cell's aggregation
-/// error from 0.0054 to 0.0043 (all) and from 0.0055 to 0.0038 (last);
-/// W = 10 stopped at 61 and 71 (docs/measurements.md, "Moments that
-/// pull"). A weight that scales with each cell's own χ² is not used: a
-/// per-cell fit stuck at χ² ≈ 10⁶ hands its cell a weight that wrecks the
-/// joint fit.
+/// 30, so that a 10 % miss in rms s (900) is of the order of a cell's bins
+/// (about 900–4000); at W = 1 the bins alone set the widths that the
+/// window or the bin size hides. docs/method.md §4 ("Whole-plane
+/// moments") has the measurement and why the weight does not scale with
+/// each cell's own χ².
 pub const MOMENT_WEIGHT: f64 = 30.0;
 
 /// The largest number of components [`fit_gmm`] accepts.
