@@ -20,7 +20,7 @@ use svkernel::metamodel::meta::MetaModelFile;
 use svkernel::pair::VertexClass;
 use svkernel::provenance::Provenance;
 use svkernel::render::estimator::{Allocation, Sampling, Sequence};
-use svkernel::render::svbssrdf::{AlbedoSpace, DensityLaw, InteriorKernel, SPACE_BLUR};
+use svkernel::render::svbssrdf::{AlbedoSpace, DensityLaw, InteriorKernel, SPACE_BLUR, Split};
 
 #[derive(Parser)]
 #[command(
@@ -343,6 +343,11 @@ struct DesignArgs {
     /// coarse albedo variation for --albedo-space, as in `render`.
     #[arg(long, default_value_t = SPACE_BLUR)]
     space_blur: f64,
+    /// Forward model learned: the kernel of that split, as in `render`
+    /// (its darker regime's everywhere: below an endpoint albedo of 0.95,
+    /// where `render` uses it).
+    #[arg(long, value_enum, default_value_t = Split::Regimes)]
+    split: Split,
     /// Forward model learned: α_t under the interior vertices' kernel, as
     /// `render --interior`.
     #[arg(long)]
@@ -387,6 +392,7 @@ fn design(a: DesignArgs) -> Result<()> {
         },
         albedo_space: a.albedo_space,
         space_blur: a.space_blur,
+        split: a.split,
         interior_kernel: a.interior,
     };
     let opts = DesignOptions {
@@ -607,6 +613,13 @@ struct RenderArgs {
     /// albedo variation for --albedo-space.
     #[arg(long, default_value_t = SPACE_BLUR)]
     space_blur: f64,
+    /// Kernel-method variant: the kernel of that split (regimes: below an
+    /// endpoint albedo of 0.95, a point of weight 0.2 and a Gaussian of
+    /// σ = --space-blur, above 0.98 the one-flight kernel of mean length
+    /// 0.5 MFP, blended between; gaussian: the Gaussian of σ = --space-blur
+    /// everywhere). docs/design.md §4.
+    #[arg(long, value_enum, default_value_t = Split::Regimes)]
+    split: Split,
     /// Kernel-method variant: the density that scales the profile where the
     /// density varies (endpoints: the geometric mean of the profiles at the
     /// entry's and the exit's density; kernel: the mean density under the
@@ -1731,6 +1744,7 @@ fn render(a: RenderArgs) -> Result<()> {
             interior: a.interior,
             space: a.albedo_space,
             space_blur: a.space_blur,
+            split: a.split,
             density_law: a.density_law,
         },
         seed: a.seed,

@@ -9,7 +9,7 @@ use svkernel::render::analysis::analyse;
 use svkernel::render::estimator::{Image, Sampling};
 use svkernel::render::reference::Reference;
 use svkernel::render::scene::Scene;
-use svkernel::render::svbssrdf::{AlbedoSpace, DensityLaw, InteriorKernel, Method, Variant};
+use svkernel::render::svbssrdf::{AlbedoSpace, DensityLaw, InteriorKernel, Method, Split, Variant};
 
 fn scene_file(name: &str, toml: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("svk-render-{}", std::process::id()));
@@ -448,6 +448,7 @@ fn hard_cases_give_finite_images() {
                     AlbedoSpace::Log
                 },
                 space_blur: if on { 0.0 } else { 0.5 },
+                split: if on { Split::Regimes } else { Split::Gaussian },
                 density_law: if on {
                     DensityLaw::Kernel
                 } else {

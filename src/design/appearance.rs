@@ -24,9 +24,10 @@
 //!   l_i·l_e·Rₘ(d; α_t)/α_t², with l_e (l_i) the linear mean of α under the
 //!   last- (first-) vertex kernel, l_i = α_i without a first-vertex model,
 //!   and α_t the renderer's two-scale mean under the all-vertex kernel
-//!   ([`AlbedoSpace`]): α_t = φ⁻¹(⟨φ(ᾱ)⟩) + ⟨α − ᾱ⟩ with ᾱ = G_b ∗ α
-//!   ([`pyramid::blur`]), by default φ(α) = √(1 − α) and b =
-//!   [`SPACE_BLUR`]; in the linear space α_t = ⟨α⟩. Point albedos are the
+//!   ([`AlbedoSpace`]): α_t = φ⁻¹(⟨φ(ᾱ)⟩) + ⟨α − ᾱ⟩ with ᾱ = S ∗ α
+//!   ([`pyramid::blur_mixture`]), by default φ(α) = √(1 − α), b =
+//!   [`SPACE_BLUR`] and S the darker regime's split kernel of [`Split`]
+//!   (0.2·δ + 0.8·G_b) at every albedo; in the linear space α_t = ⟨α⟩. Point albedos are the
 //!   texel under the point. The kernels' *shapes* are the meta-model's at
 //!   an **anchor** map A, held fixed while α varies: the vertex kernels at
 //!   (A_i + A_e)/2, the all-vertex kernel at the anchor's first-pass α_t
@@ -42,7 +43,7 @@
 //! space, one of φ(ᾱ) and one of α − ᾱ); the gradient runs the reads
 //! backwards into the stacks' adjoint buffers, then through their
 //! transposed stencils, and the two-scale parts through φ′(ᾱ) and the
-//! transposed blur ([`pyramid::blur_transpose`]). Sums are taken over a fixed number of pixel blocks
+//! transposed blur ([`pyramid::blur_mixture_transpose`]). Sums are taken over a fixed number of pixel blocks
 //! in a fixed order, so results do not depend on the thread count.
 
 use super::stack::BlurStack;
@@ -52,7 +53,7 @@ use crate::metamodel::basis::BasisModel;
 use crate::metamodel::kernel::{Gmm, interior_into};
 use crate::metamodel::meta::MetaModelFile;
 use crate::render::pyramid;
-use crate::render::svbssrdf::{AlbedoSpace, BasisTable, Method, R_MIN, SPACE_BLUR};
+use crate::render::svbssrdf::{AlbedoSpace, BasisTable, Method, R_MIN, SPACE_BLUR, Split};
 use rayon::prelude::*;
 use std::f64::consts::PI;
 use std::sync::Arc;
@@ -207,6 +208,9 @@ pub struct Appearance {
     /// from the fine part (learned).
     space: AlbedoSpace,
     space_blur: f64,
+    /// The split kernel (σ, weight) at unit density, the darker regime's
+    /// of the renderer's [`Split`].
+    split: Vec<(f64, f64)>,
     /// The gradient's per-block buffers, kept between calls (fresh ones
     /// would be page-faulted in on every call).
     scratch: std::sync::Mutex<Vec<Part>>,
@@ -229,7 +233,7 @@ struct Stacks {
     two_scale: Option<TwoScale>,
 }
 
-/// The two-scale parts of a map: ᾱ = G_b ∗ α, and stacks of φ(ᾱ) and α − ᾱ.
+/// The two-scale parts of a map: ᾱ = S ∗ α, and stacks of φ(ᾱ) and α − ᾱ.
 #[derive(Debug)]
 struct TwoScale {
     mean: Vec<f64>,
@@ -319,6 +323,7 @@ impl Appearance {
             grid,
             space: AlbedoSpace::default(),
             space_blur: SPACE_BLUR,
+            split: Split::default().components(SPACE_BLUR, false),
             scratch: Default::default(),
             spare_stacks: Default::default(),
             spare_partials: Default::default(),
@@ -328,12 +333,22 @@ impl Appearance {
     /// The same model with α_t averaged in `space`, split at scale `blur`
     /// (MFP, ≥ 0; no part in the linear space). The default is the
     /// renderer's: [`AlbedoSpace::default`] at [`SPACE_BLUR`].
-    pub fn with_albedo_space(mut self, space: AlbedoSpace, blur: f64) -> Result<Self> {
+    pub fn with_albedo_space(self, space: AlbedoSpace, blur: f64) -> Result<Self> {
+        self.with_split(space, blur, Split::default())
+    }
+
+    /// [`Self::with_albedo_space`] with the split kernel of `split`: its
+    /// darker regime's ([`Split::components`]) everywhere. The renderer's
+    /// default ([`Split::Regimes`]) changes to the one-flight kernel where
+    /// the endpoints' albedo passes 0.95; this model keeps one kernel, so
+    /// that its gradient stays that of one fixed linear split.
+    pub fn with_split(mut self, space: AlbedoSpace, blur: f64, split: Split) -> Result<Self> {
         if !(blur.is_finite() && blur >= 0.0) {
             return Err(Error::param("space-blur", blur, "finite and >= 0 (MFP)"));
         }
         self.space = space;
         self.space_blur = blur;
+        self.split = split.components(blur, false);
         Ok(self)
     }
 
@@ -432,11 +447,9 @@ impl Appearance {
         let two_scale = match self.space {
             AlbedoSpace::Linear => None,
             space => {
-                let mean = if self.space_blur > 0.0 {
-                    pyramid::blur(&self.texel_grid(alpha.to_vec()), self.space_blur).values
-                } else {
-                    alpha.to_vec()
-                };
+                let mean =
+                    pyramid::blur_mixture(&self.texel_grid(alpha.to_vec()), &self.split, 1.0)
+                        .values;
                 let phi: Vec<f64> = mean.iter().map(|&m| space.forward(m)).collect();
                 let residual: Vec<f64> = alpha.iter().zip(&mean).map(|(a, m)| a - m).collect();
                 let (phi, residual) = rayon::join(|| build(&phi), || build(&residual));
@@ -724,11 +737,12 @@ impl Appearance {
                 let h: Vec<f64> = (0..n)
                     .map(|k| self.space.forward_derivative(t.mean[k]) * g_phi[k] - g_res[k])
                     .collect();
-                let back = if self.space_blur > 0.0 {
-                    pyramid::blur_transpose(&self.texel_grid(Vec::new()), self.space_blur, &h)
-                } else {
-                    h
-                };
+                let back = pyramid::blur_mixture_transpose(
+                    &self.texel_grid(Vec::new()),
+                    &self.split,
+                    1.0,
+                    &h,
+                );
                 for k in 0..n {
                     texels[k] += g_res[k] + back[k];
                 }

@@ -45,7 +45,7 @@ pub mod stack;
 use crate::error::{Error, Result};
 use crate::metamodel::basis::BasisModel;
 use crate::metamodel::meta::MetaModelFile;
-use crate::render::svbssrdf::{AlbedoSpace, Method, SPACE_BLUR};
+use crate::render::svbssrdf::{AlbedoSpace, Method, SPACE_BLUR, Split};
 use appearance::{Appearance, Illumination, Quadrature};
 use rcompat_lbfgsb::{ArithmeticProfile, Bounds, OptimControl, OptimEvent};
 use serde::{Deserialize, Serialize};
@@ -76,6 +76,8 @@ pub struct Settings {
     pub albedo_space: AlbedoSpace,
     /// The scale b (MFP) that splits α_t's fine from its coarse part.
     pub space_blur: f64,
+    /// The kernel of that split (its darker regime's, [`Split`]).
+    pub split: Split,
     /// α_t under the interior vertices' kernel (learned; the renderer's
     /// `interior` variant).
     pub interior_kernel: bool,
@@ -95,6 +97,7 @@ impl Default for Settings {
             quadrature: Quadrature::default(),
             albedo_space: AlbedoSpace::default(),
             space_blur: SPACE_BLUR,
+            split: Split::default(),
             interior_kernel: false,
         }
     }
@@ -547,7 +550,7 @@ impl<'a> Designer<'a> {
             span,
             &settings.quadrature,
         )?
-        .with_albedo_space(settings.albedo_space, settings.space_blur)?;
+        .with_split(settings.albedo_space, settings.space_blur, settings.split)?;
         let app = match (settings.interior_kernel, meta) {
             (true, Some(meta)) => app.with_interior_kernel(meta),
             _ => app,

@@ -146,9 +146,10 @@ pub struct DesignDoc {
     pub rounds: usize,
     pub smoothness: f64,
     pub quadrature: [usize; 2],
-    /// α_t's space and scale b (MFP) in `learned`.
+    /// α_t's space, scale b (MFP) and split kernel in `learned`.
     pub albedo_space: String,
     pub space_blur: f64,
+    pub split: String,
     /// α_t under the interior vertices' kernel in `learned`.
     pub interior_kernel: bool,
     pub history: Vec<Step>,
@@ -195,6 +196,7 @@ pub fn run(opts: &DesignOptions) -> Result<DesignDoc> {
         quadrature: [s.quadrature.rings, s.quadrature.angles],
         albedo_space: s.albedo_space.name().into(),
         space_blur: s.space_blur,
+        split: s.split.name().into(),
         interior_kernel: s.interior_kernel,
         history: designed.history.clone(),
         evaluations: designed.evaluations,

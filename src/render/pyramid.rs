@@ -511,6 +511,58 @@ pub fn blur(map: &TexelMap, sigma: f64) -> TexelMap {
     }
 }
 
+/// Σ w·G_{σ·scale} ∗ `map` over a Gaussian mixture `mixture` of (σ, w)
+/// pairs, σ = 0 a point (the map itself), by separable blurs ([`blur`]).
+pub fn blur_mixture(map: &TexelMap, mixture: &[(f64, f64)], scale: f64) -> TexelMap {
+    let mut out = map.clone();
+    out.values = mixture_sum(
+        mixture,
+        map.values.len(),
+        |sigma| blur(map, sigma * scale).values,
+        &map.values,
+    );
+    out
+}
+
+/// The transpose of [`blur_mixture`] as a linear map of the texel values,
+/// for texel weights `g` ([`blur_transpose`] per component).
+pub fn blur_mixture_transpose(
+    map: &TexelMap,
+    mixture: &[(f64, f64)],
+    scale: f64,
+    g: &[f64],
+) -> Vec<f64> {
+    mixture_sum(
+        mixture,
+        g.len(),
+        |sigma| blur_transpose(map, sigma * scale, g),
+        g,
+    )
+}
+
+/// Σ w·f(σ) over `mixture`, with `point` for σ = 0.
+fn mixture_sum(
+    mixture: &[(f64, f64)],
+    n: usize,
+    f: impl Fn(f64) -> Vec<f64>,
+    point: &[f64],
+) -> Vec<f64> {
+    let mut out = vec![0.0; n];
+    for &(sigma, weight) in mixture {
+        let blurred;
+        let values = if sigma > 0.0 {
+            blurred = f(sigma);
+            &blurred
+        } else {
+            point
+        };
+        for (o, v) in out.iter_mut().zip(values) {
+            *o += weight * v;
+        }
+    }
+    out
+}
+
 /// The transpose of [`blur`] as a linear map of the texel values: for
 /// texel weights g (row-major, the grid of `map`, whose values are not
 /// read), the gradient Σ_k g_k·∂(blur(α))_k/∂α. With edge clamp the blur is

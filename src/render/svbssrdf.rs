@@ -163,6 +163,8 @@ pub struct Variant {
     /// The scale b (MFP at the local density) that separates fine from
     /// coarse albedo variation in a two-scale [`AlbedoSpace`].
     pub space_blur: f64,
+    /// The kernel of that split ([`Split`]).
+    pub split: Split,
     /// The density that scales the profile where the density varies.
     pub density_law: DensityLaw,
 }
@@ -199,6 +201,17 @@ pub enum InteriorKernel {
 /// measured on was rendered with it.
 pub const INTERIOR_RAMP: [f64; 2] = [0.95, 0.98];
 
+/// The weight of the bright regime at albedo `alpha`: 0 below
+/// [`INTERIOR_RAMP`], 1 above, smooth (C¹) between. The interior kernel
+/// ([`InteriorKernel::Auto`]) and the split of the two-scale mean
+/// ([`Split::Regimes`]) change regime over the same ramp.
+#[inline]
+pub fn bright_weight(alpha: f64) -> f64 {
+    let [lo, hi] = INTERIOR_RAMP;
+    let t = ((alpha - lo) / (hi - lo)).clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
 impl InteriorKernel {
     /// The interior kernel's weight at the all-vertex α_t `alpha`.
     #[inline]
@@ -206,11 +219,7 @@ impl InteriorKernel {
         match self {
             InteriorKernel::Never => 0.0,
             InteriorKernel::Always => 1.0,
-            InteriorKernel::Auto => {
-                let [lo, hi] = INTERIOR_RAMP;
-                let t = ((alpha - lo) / (hi - lo)).clamp(0.0, 1.0);
-                t * t * (3.0 - 2.0 * t)
-            }
+            InteriorKernel::Auto => bright_weight(alpha),
         }
     }
 }
@@ -248,6 +257,88 @@ impl DensityLaw {
 /// 0.1–3 MFP on the canonical scenes picked (docs/measurements.md).
 pub const SPACE_BLUR: f64 = 0.25;
 
+/// The weight of the point in the darker regime's split kernel
+/// ([`Split::Regimes`]): the share of a vertex's next flights too short to
+/// leave its texel. Measured on the canonical and held-out scenes (a sweep
+/// over 0, 0.1, 0.2 and 0.3, docs/measurements.md).
+pub const SPLIT_POINT_WEIGHT: f64 = 0.2;
+
+/// The mean flight length ℓ (MFP at the local density) of the bright
+/// regime's split kernel ([`Split::Regimes`], [`FLIGHT_KERNEL`]). Measured
+/// like [`SPLIT_POINT_WEIGHT`] (a sweep over 0.3, 0.4, 0.5 and 1 MFP).
+pub const BRIGHT_FLIGHT: f64 = 0.5;
+
+/// The surface displacement of one flight, as a Gaussian mixture in units
+/// of its mean length ℓ: (σ/ℓ, weight), σ = 0 a point. A flight of length
+/// L ∼ Exp(1/ℓ) in a uniformly random 3D direction moves a vertex by a
+/// lateral offset whose 2D characteristic function is that of the 3D
+/// flight at k_z = 0, arctan(kℓ)/(kℓ) (the Fourier transform of the point
+/// kernel e^{−r/ℓ}/(4πℓr²); Case & Zweifel, *Linear Transport Theory*,
+/// 1967): a cusp at 0 and a 1/k tail, where a Gaussian falls off as
+/// e^{−k²σ²/2}. The
+/// weights are the non-negative least-squares fit on kℓ ∈ [0, 60] (within
+/// 0.004 of arctan(kℓ)/(kℓ) there, tested), normalised to unit mass.
+pub const FLIGHT_KERNEL: [(f64, f64); 8] = [
+    (0.0, 0.028_561),
+    (0.05, 0.064_902),
+    (0.1, 0.065_956),
+    (0.2, 0.154_546),
+    (0.4, 0.233_682),
+    (0.8, 0.299_588),
+    (1.6, 0.147_980),
+    (3.2, 0.004_783),
+];
+
+/// The kernel S that splits the albedo into its local mean ᾱ = S ∗ α and
+/// the fine residual α − ᾱ ([`AlbedoSpace`]): what a path's next vertex
+/// sees of the albedo around the last one. Both kernels are Gaussian
+/// mixtures (a point included) whose lengths scale as 1/ρ.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, clap::ValueEnum)]
+pub enum Split {
+    /// One Gaussian of σ = b ([`Variant::space_blur`]) everywhere.
+    Gaussian,
+    /// Two regimes, by the endpoints' mean albedo α₀ over
+    /// [`INTERIOR_RAMP`] ([`bright_weight`]), the α_t of each blended by
+    /// that weight. Below: a point of weight [`SPLIT_POINT_WEIGHT`] (the
+    /// short flights, which see their own texel) and the Gaussian of
+    /// σ = b, so that variation finer than b keeps part of its contrast in
+    /// the coarse part. Above, where paths are long: the one-flight kernel
+    /// [`FLIGHT_KERNEL`] of mean length [`BRIGHT_FLIGHT`]. The default:
+    /// measured better than `gaussian` on 15 of the 19 scenes and passes,
+    /// worse on 3 (docs/measurements.md).
+    #[default]
+    Regimes,
+}
+
+impl Split {
+    /// The name on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Split::Gaussian => "gaussian",
+            Split::Regimes => "regimes",
+        }
+    }
+
+    /// The split kernel of the darker regime (`bright` false) or of the
+    /// bright one, as (σ, weight) at unit density, σ = 0 a point; `b` is
+    /// [`Variant::space_blur`].
+    pub fn components(self, b: f64, bright: bool) -> Vec<(f64, f64)> {
+        match (self, bright) {
+            (Split::Gaussian, _) => vec![(b, 1.0)],
+            (Split::Regimes, false) => {
+                vec![(0.0, SPLIT_POINT_WEIGHT), (b, 1.0 - SPLIT_POINT_WEIGHT)]
+            }
+            (Split::Regimes, true) => {
+                let total: f64 = FLIGHT_KERNEL.iter().map(|c| c.1).sum();
+                FLIGHT_KERNEL
+                    .iter()
+                    .map(|&(s, w)| (s * BRIGHT_FLIGHT, w / total))
+                    .collect()
+            }
+        }
+    }
+}
+
 /// The space in which the kernel methods average the albedo for α_t.
 ///
 /// A path's throughput is the product of its vertices' albedos. Where its
@@ -255,16 +346,17 @@ pub const SPACE_BLUR: f64 = 0.25;
 /// a power of the linear mean ∫Kρα/∫Kρ; where a path stays on one side of
 /// a coarse step, the mean is a mixture over sides and the bright side
 /// weighs more. So the albedo is split at a scale b (MFP at the local
-/// density, [`Variant::space_blur`]) into ᾱ = G_b ∗ α, its density-weighted
-/// local mean, and the fine residual α − ᾱ. The fine part is averaged
-/// linearly, the coarse one in the space φ:
+/// density, [`Variant::space_blur`]) into ᾱ = S ∗ α, its density-weighted
+/// local mean under the split kernel S ([`Split`]; in the `gaussian` split
+/// G_b, a Gaussian of σ = b), and the fine residual α − ᾱ. The fine part is
+/// averaged linearly, the coarse one in the space φ:
 ///
 ///   α_t = φ⁻¹(∫Kρ φ(ᾱ) / ∫Kρ) + ∫Kρ (α − ᾱ) / ∫Kρ.
 ///
-/// On a texture much finer than b this is the linear mean; with b = 0 it is
-/// the mean in φ. The vertex kernels (first and last) are always averaged
-/// linearly: one vertex's expected albedo is its linear mean. Arguments of
-/// the logarithms are floored at [`SPACE_FLOOR`].
+/// Under G_b, on a texture much finer than b this is the linear mean; with
+/// b = 0 it is the mean in φ. The vertex kernels (first and last) are
+/// always averaged linearly: one vertex's expected albedo is its linear
+/// mean. Arguments of the logarithms are floored at [`SPACE_FLOOR`].
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, clap::ValueEnum)]
 pub enum AlbedoSpace {
     /// φ(α) = α: the kernel-weighted arithmetic mean (b plays no part).
@@ -365,6 +457,7 @@ impl Default for Variant {
             interior: InteriorKernel::Auto,
             space: AlbedoSpace::Transport,
             space_blur: SPACE_BLUR,
+            split: Split::Regimes,
             density_law: DensityLaw::Endpoints,
         }
     }
@@ -396,6 +489,11 @@ impl Variant {
         }
         if self.space_blur != d.space_blur && self.space != AlbedoSpace::Linear {
             s += &format!("+blur{}", self.space_blur);
+        }
+        if self.split != d.split && self.space != AlbedoSpace::Linear {
+            s += "+";
+            s += self.split.name();
+            s += "-split";
         }
         if self.density_law != d.density_law {
             s += "+";
@@ -609,12 +707,16 @@ struct Pyramids {
     /// Pyramids of α: the vertex kernels' aggregates, and α_t's in the
     /// linear space.
     linear: Aggregand,
-    /// α_t's aggregands in a two-scale [`AlbedoSpace`].
+    /// α_t's aggregands in a two-scale [`AlbedoSpace`] (the darker
+    /// regime's under [`Split::Regimes`]).
     mapped: Option<Mapped>,
+    /// The bright regime's (two-scale spaces under [`Split::Regimes`]).
+    bright: Option<Mapped>,
     /// G ∗ ρ (density maps only).
     rho: Option<GaussianPyramid>,
-    /// The b of `mapped`.
+    /// The b and the split of `mapped` and `bright`.
     blur: f64,
+    split: Split,
 }
 
 /// The aggregands of a two-scale [`AlbedoSpace`].
@@ -701,7 +803,10 @@ impl Material {
         // The plain variant's pyramids differ only with a density map.
         let slot =
             &self.pyramids[usize::from(varying && variant.plain) + 2 * variant.space.index()];
-        if let Some(p) = slot.get().filter(|p| p.blur == variant.space_blur) {
+        if let Some(p) = slot
+            .get()
+            .filter(|p| p.blur == variant.space_blur && p.split == variant.split)
+        {
             return Ok(p.clone());
         }
         // One set of pyramids of `maps` (of α, or of φ(ᾱ)).
@@ -723,10 +828,13 @@ impl Material {
             Ok(Aggregand { alpha, rho_alpha })
         };
         let linear = aggregand(&self.albedo)?;
-        let mapped = if variant.space == AlbedoSpace::Linear {
-            None
-        } else {
-            let means = self.local_means(variant.space_blur)?;
+        // The two-scale aggregands under one split kernel.
+        let mapped = |bright: bool| -> Result<Mapped> {
+            let b = variant.space_blur;
+            if !(b.is_finite() && b >= 0.0) {
+                return Err(Error::param("space_blur", b, "finite and >= 0 (MFP)"));
+            }
+            let means = self.local_means(&variant.split.components(b, bright))?;
             let map = |f: &dyn Fn(f64, f64) -> f64| {
                 means
                     .iter()
@@ -742,11 +850,16 @@ impl Material {
             };
             let phi = map(&|mean, _| variant.space.forward(mean));
             let residual = map(&|mean, a| a - mean);
-            Some(Mapped {
+            Ok(Mapped {
                 phi: aggregand(&phi)?,
                 residual: aggregand(&residual)?,
             })
         };
+        let two_scale = variant.space != AlbedoSpace::Linear;
+        let bright = (two_scale && variant.split == Split::Regimes)
+            .then(|| mapped(true))
+            .transpose()?;
+        let mapped = two_scale.then(|| mapped(false)).transpose()?;
         let rho = match &self.density {
             Density::Map(rho) => Some(GaussianPyramid::new(rho)?),
             Density::Constant(_) => None,
@@ -754,8 +867,10 @@ impl Material {
         let built = Arc::new(Pyramids {
             linear,
             mapped,
+            bright,
             rho,
             blur: variant.space_blur,
+            split: variant.split,
         });
         // Cached unless the slot holds another blur's (built for a variant
         // of its own).
@@ -765,16 +880,11 @@ impl Material {
         })
     }
 
-    /// Per channel, each texel's ᾱ = G_b ∗ α: the (density-weighted) mean
-    /// of α under a Gaussian of σ = b/ρ centred on the texel (b/ρ at the
-    /// texel's own density for a density map). b = 0 gives α.
-    fn local_means(&self, b: f64) -> Result<Vec<TexelMap>> {
-        if !(b.is_finite() && b >= 0.0) {
-            return Err(Error::param("space_blur", b, "finite and >= 0 (MFP)"));
-        }
-        if b == 0.0 {
-            return Ok(self.albedo.clone());
-        }
+    /// Per channel, each texel's ᾱ = S ∗ α: the (density-weighted) mean of
+    /// α under the split kernel S (`split`, [`Split::components`]: (σ,
+    /// weight) at unit density, σ = 0 a point) centred on the texel, its
+    /// lengths divided by the texel's own density for a density map.
+    fn local_means(&self, split: &[(f64, f64)]) -> Result<Vec<TexelMap>> {
         let Density::Map(rho) = &self.density else {
             let Density::Constant(r) = self.density else {
                 unreachable!()
@@ -782,26 +892,31 @@ impl Material {
             return Ok(self
                 .albedo
                 .iter()
-                .map(|a| pyramid::blur(a, b / r))
+                .map(|a| pyramid::blur_mixture(a, split, 1.0 / r))
                 .collect());
         };
         let weighted = density_weighted(&self.albedo, &self.density);
         // Few distinct densities (steps, stripes, a constant map): exact,
-        // two separable blurs per density. Otherwise one pyramid query per
-        // texel (to the pyramid's accuracy).
+        // two separable blurs per density and component. Otherwise one
+        // pyramid query per texel and component (to the pyramid's
+        // accuracy).
         let mut levels: Vec<f64> = rho.values.clone();
         levels.sort_by(f64::total_cmp);
         levels.dedup();
         if levels.len() <= EXACT_DENSITY_LEVELS {
-            let rho_blurred: Vec<TexelMap> =
-                levels.iter().map(|&r| pyramid::blur(rho, b / r)).collect();
+            let rho_blurred: Vec<TexelMap> = levels
+                .iter()
+                .map(|&r| pyramid::blur_mixture(rho, split, 1.0 / r))
+                .collect();
             let level = |r: f64| levels.partition_point(|&l| l < r);
             return Ok(weighted
                 .iter()
                 .zip(&self.albedo)
                 .map(|(w, a)| {
-                    let w_blurred: Vec<TexelMap> =
-                        levels.iter().map(|&r| pyramid::blur(w, b / r)).collect();
+                    let w_blurred: Vec<TexelMap> = levels
+                        .iter()
+                        .map(|&r| pyramid::blur_mixture(w, split, 1.0 / r))
+                        .collect();
                     let mut m = a.clone();
                     for (k, v) in m.values.iter_mut().enumerate() {
                         let l = level(rho.values[k]);
@@ -826,11 +941,21 @@ impl Material {
                             0.5 * ny as f64 * tau - (i as f64 + 0.5) * tau,
                         ];
                         let k = i * nx + j;
-                        let ([r, ra], _) = GaussianPyramid::integrate_n(
-                            [&rho_pyramid, &wp],
-                            mu,
-                            b / rho.values[k],
-                        );
+                        let (mut r, mut ra) = (0.0, 0.0);
+                        for &(sigma, weight) in split {
+                            let [r1, ra1] = if sigma > 0.0 {
+                                GaussianPyramid::integrate_n(
+                                    [&rho_pyramid, &wp],
+                                    mu,
+                                    sigma / rho.values[k],
+                                )
+                                .0
+                            } else {
+                                [rho.values[k], w.values[k]]
+                            };
+                            r += weight * r1;
+                            ra += weight * ra1;
+                        }
                         m.values[k] = ra / r;
                     }
                 }
@@ -1086,20 +1211,23 @@ impl SvBssrdf {
         // the point albedo in hand.
         let (mut li, mut le) = (ai, ae);
         if vertex.is_some_and(|meta| meta.first.is_some()) {
-            li = self.aggregate(c, &frame, &scratch.first, false).0;
+            li = self.aggregate(c, &frame, &scratch.first, None).0;
         }
         let interior = vertex.filter(|_| self.variant.interior != InteriorKernel::Never);
+        // The bright regime's weight (its split, [`Split::Regimes`]).
+        let bright = bright_weight(a0);
         let (mut alpha_t, mut rho_bar, le_read) =
-            self.total_albedo(interior, c, &frame, d, rho0, scratch);
+            self.regime_albedo(interior, c, &frame, d, rho0, bright, scratch);
         if vertex.is_some() && b.observable == Observable::Exitance {
-            le = le_read.unwrap_or_else(|| self.aggregate(c, &frame, &scratch.last, false).0);
+            le = le_read.unwrap_or_else(|| self.aggregate(c, &frame, &scratch.last, None).0);
         }
         if self.variant.two_pass {
             self.all_kernel(d, alpha_t, rho_bar, &mut scratch.kernel);
             if let Some(meta) = interior {
                 self.end_kernels(meta, d, alpha_t, rho_bar, scratch);
             }
-            (alpha_t, rho_bar, _) = self.total_albedo(interior, c, &frame, d, rho_bar, scratch);
+            (alpha_t, rho_bar, _) =
+                self.regime_albedo(interior, c, &frame, d, rho_bar, bright, scratch);
         }
         // The single-scattering vertex: below x_i under normal incidence;
         // for the radiance along the normal below x_e under any light.
@@ -1137,11 +1265,45 @@ impl SvBssrdf {
         }
     }
 
-    /// (α_t, ρ̄) under the all-vertex kernel in `scratch.kernel`, with
+    /// [`Self::total_albedo`] in the darker regime's two-scale aggregands
+    /// and the bright regime's ([`Split::Regimes`]), blended by `bright`,
+    /// the bright regime's weight; each regime is read only where its
+    /// weight is not 0. (ρ̄ and l_e do not depend on the regime.)
+    #[allow(clippy::too_many_arguments)]
+    #[inline]
+    fn regime_albedo(
+        &self,
+        interior: Option<&MetaModelFile>,
+        c: usize,
+        frame: &Frame,
+        d: f64,
+        rho: f64,
+        bright: f64,
+        scratch: &mut Scratch,
+    ) -> (f64, f64, Option<f64>) {
+        let p = self.pyramids();
+        let dark = p.mapped.as_ref();
+        match p.bright.as_ref() {
+            Some(q) if bright >= 1.0 => {
+                self.total_albedo(interior, c, frame, d, rho, Some(q), scratch)
+            }
+            Some(q) if bright > 0.0 => {
+                let (lo, rho_bar, le) =
+                    self.total_albedo(interior, c, frame, d, rho, dark, scratch);
+                let (hi, _, _) = self.total_albedo(interior, c, frame, d, rho, Some(q), scratch);
+                (lo + bright * (hi - lo), rho_bar, le)
+            }
+            _ => self.total_albedo(interior, c, frame, d, rho, dark, scratch),
+        }
+    }
+
+    /// (α_t, ρ̄) under the all-vertex kernel in `scratch.kernel`, averaged
+    /// with the two-scale aggregands `q` (the linear mean if `None`), with
     /// `interior` (the model whose end kernels are in `scratch`) blended
     /// towards α_t under the interior vertices' kernel by the variant's
     /// [`InteriorKernel::weight`] at the all-vertex α_t; and l_e where that
     /// blend read it on the way (in exitance at a constant density).
+    #[allow(clippy::too_many_arguments)]
     #[inline]
     fn total_albedo(
         &self,
@@ -1150,20 +1312,21 @@ impl SvBssrdf {
         frame: &Frame,
         d: f64,
         rho: f64,
+        q: Option<&Mapped>,
         scratch: &mut Scratch,
     ) -> (f64, f64, Option<f64>) {
-        let (parts, rho_bar) = self.aggregate_parts(c, frame, &scratch.kernel);
-        let all = self.alpha_of_parts(parts);
+        let (parts, rho_bar) = self.aggregate_parts(c, frame, &scratch.kernel, q);
+        let all = self.alpha_of_parts(parts, q);
         let w = self.variant.interior.weight(all);
         let Some(meta) = interior.filter(|_| w > 0.0) else {
             return (all, rho_bar, None);
         };
-        let (inner, le) = match self.interior_in_parts(meta, c, frame, d, rho, parts, scratch) {
+        let (inner, le) = match self.interior_in_parts(meta, c, frame, d, rho, parts, q, scratch) {
             Some((inner, le)) => (inner, Some(le)),
             None => {
                 // n̄ at the all-vertex α_t: the albedo that the paths see.
                 self.interior_kernel(meta, d, all, rho, scratch);
-                (self.aggregate_interior(c, frame, scratch, all), None)
+                (self.aggregate_interior(c, frame, scratch, all, q), None)
             }
         };
         let alpha_t = if w >= 1.0 {
@@ -1198,8 +1361,15 @@ impl SvBssrdf {
     /// positive where the density jumps by orders of magnitude between the
     /// ends and the interior; there the all-vertex α_t stands.
     #[inline]
-    fn aggregate_interior(&self, c: usize, frame: &Frame, scratch: &Scratch, all: f64) -> f64 {
-        match self.aggregate(c, frame, &scratch.interior, true) {
+    fn aggregate_interior(
+        &self,
+        c: usize,
+        frame: &Frame,
+        scratch: &Scratch,
+        all: f64,
+        q: Option<&Mapped>,
+    ) -> f64 {
+        match self.aggregate(c, frame, &scratch.interior, q) {
             (alpha, weight) if alpha.is_finite() && weight > 0.0 => alpha,
             _ => all,
         }
@@ -1223,6 +1393,7 @@ impl SvBssrdf {
         d: f64,
         rho0: f64,
         parts: [f64; 2],
+        q: Option<&Mapped>,
         scratch: &mut Scratch,
     ) -> Option<(f64, f64)> {
         let b = &*self.basis;
@@ -1239,11 +1410,11 @@ impl SvBssrdf {
         point.push(Component::point(1.0, 0.0));
         // n̄ at the all-vertex α_t: the albedo that the paths see.
         let m = b
-            .interior_vertices(d.max(R_MIN) * rho0, self.alpha_of_parts(parts))
+            .interior_vertices(d.max(R_MIN) * rho0, self.alpha_of_parts(parts, q))
             .max(INTERIOR_MIN);
         let [y_a, r_a] = parts;
         let combine = |all: f64, last: f64, point: f64| ((m + 2.0) * all - last - point) / m;
-        Some(match &p.mapped {
+        Some(match q {
             Some(q) => {
                 let ([y_l, r_l, le], _) =
                     self.means(p, [&q.phi, &q.residual, &p.linear], c, frame, &scratch.last);
@@ -1275,13 +1446,13 @@ impl SvBssrdf {
     }
 
     /// (α_t, ρ̄) of channel `c` under `kernel` placed in `frame`: the linear
-    /// mean of α, or with `mapped` the two-scale mean of the variant's
-    /// [`AlbedoSpace`].
+    /// mean of α, or with the two-scale aggregands `q` the two-scale mean
+    /// of the variant's [`AlbedoSpace`].
     #[inline]
-    fn aggregate(&self, c: usize, frame: &Frame, kernel: &Gmm, mapped: bool) -> (f64, f64) {
-        if mapped {
-            let (parts, rho_bar) = self.aggregate_parts(c, frame, kernel);
-            return (self.alpha_of_parts(parts), rho_bar);
+    fn aggregate(&self, c: usize, frame: &Frame, kernel: &Gmm, q: Option<&Mapped>) -> (f64, f64) {
+        if q.is_some() {
+            let (parts, rho_bar) = self.aggregate_parts(c, frame, kernel, q);
+            return (self.alpha_of_parts(parts, q), rho_bar);
         }
         let p = self.pyramids();
         let ([a], rho_bar) = self.means(p, [&p.linear], c, frame, kernel);
@@ -1289,12 +1460,18 @@ impl SvBssrdf {
     }
 
     /// The two means that make α_t under `kernel` ([`AlbedoSpace`]):
-    /// ([mean of φ(ᾱ), mean of α − ᾱ], ρ̄) in a two-scale space, ([mean of
-    /// α, 0], ρ̄) in the linear one.
+    /// ([mean of φ(ᾱ), mean of α − ᾱ], ρ̄) with the two-scale aggregands
+    /// `q`, ([mean of α, 0], ρ̄) without.
     #[inline]
-    fn aggregate_parts(&self, c: usize, frame: &Frame, kernel: &Gmm) -> ([f64; 2], f64) {
+    fn aggregate_parts(
+        &self,
+        c: usize,
+        frame: &Frame,
+        kernel: &Gmm,
+        q: Option<&Mapped>,
+    ) -> ([f64; 2], f64) {
         let p = self.pyramids();
-        match &p.mapped {
+        match q {
             Some(m) => self.means(p, [&m.phi, &m.residual], c, frame, kernel),
             None => {
                 let ([a], rho_bar) = self.means(p, [&p.linear], c, frame, kernel);
@@ -1305,8 +1482,8 @@ impl SvBssrdf {
 
     /// α_t from [`Self::aggregate_parts`]'s two means.
     #[inline]
-    fn alpha_of_parts(&self, [y, r]: [f64; 2]) -> f64 {
-        match &self.pyramids().mapped {
+    fn alpha_of_parts(&self, [y, r]: [f64; 2], q: Option<&Mapped>) -> f64 {
+        match q {
             Some(_) => (self.variant.space.inverse(y) + r).clamp(0.0, 1.0),
             None => y.clamp(0.0, 1.0),
         }
@@ -1921,6 +2098,7 @@ mod tests {
                             interior: InteriorKernel::Always,
                             space: AlbedoSpace::Log,
                             space_blur: 0.5,
+                            split: Split::Gaussian,
                             density_law: DensityLaw::Kernel,
                         },
                     ] {
@@ -2046,6 +2224,7 @@ mod tests {
                     Variant {
                         space,
                         space_blur: blur,
+                        split: Split::Gaussian,
                         ..Variant::default()
                     },
                     t.clone(),
@@ -2054,13 +2233,85 @@ mod tests {
                     density.clone(),
                 )
                 .unwrap();
-                let (alpha_t, _) = sv.aggregate(0, &frame, &kernel, true);
+                let (alpha_t, _) = sv.aggregate(0, &frame, &kernel, sv.pyramids().mapped.as_ref());
                 assert!(
                     (alpha_t - want).abs() < 2e-3,
                     "{space:?}, b = {blur}: α_t {alpha_t} against {want}"
                 );
             }
         }
+    }
+
+    /// The darker regime of [`Split::Regimes`] keeps the point's share of
+    /// a fine texture's contrast in the coarse part: on the fine checker
+    /// of 0.2 and 0.8 with b = 1 MFP, ᾱ = 0.2·α + 0.8·0.5 and α_t =
+    /// φ⁻¹(⟨φ(ᾱ)⟩) in the transport space (the residual's mean is 0); the
+    /// bright regime reads the one-flight kernel's aggregands.
+    #[test]
+    fn regimes_split_keeps_the_points_share() {
+        let (_, t) = basis();
+        let (albedo, _) = fine_checker(400);
+        let kernel = Gmm {
+            components: vec![Component {
+                weight: 1.0,
+                t: 0.5,
+                s: 0.0,
+                sigma: 1.5,
+            }],
+        };
+        let frame = Frame {
+            xi: [0.0, 0.0],
+            axis: [1.0, 0.0],
+        };
+        let space = AlbedoSpace::Transport;
+        let bar = |a: f64| SPLIT_POINT_WEIGHT * a + (1.0 - SPLIT_POINT_WEIGHT) * 0.5;
+        let want = space.inverse(0.5 * (space.forward(bar(0.2)) + space.forward(bar(0.8))));
+        let sv = SvBssrdf::new(
+            Method::Manual,
+            Variant {
+                space_blur: 1.0,
+                ..Variant::default()
+            },
+            t.clone(),
+            None,
+            vec![albedo],
+            Density::Constant(1.0),
+        )
+        .unwrap();
+        let p = sv.pyramids();
+        let (dark, _) = sv.aggregate(0, &frame, &kernel, p.mapped.as_ref());
+        assert!((dark - want).abs() < 3e-4, "α_t {dark} against {want}");
+        assert!(want > 0.5 + 1.5e-3, "the point's share must show: {want}");
+        // The one-flight kernel keeps a little of this checker's contrast
+        // (its point's weight and its cusp: arctan(kℓ)/(kℓ) ≈ 0.03 at the
+        // checker's kℓ), less than the darker regime's point of 0.2.
+        let (bright, _) = sv.aggregate(0, &frame, &kernel, p.bright.as_ref());
+        assert!(
+            bright > 0.5 && bright < dark - 1e-3,
+            "{bright} against {dark}"
+        );
+    }
+
+    /// The one-flight kernel's Gaussian mixture has unit mass and the
+    /// characteristic function arctan(kℓ)/(kℓ) of a flight's surface
+    /// displacement to 0.004 for kℓ ≤ 60.
+    #[test]
+    fn flight_kernel_is_one_flights_displacement() {
+        let mass: f64 = FLIGHT_KERNEL.iter().map(|c| c.1).sum();
+        assert!((mass - 1.0).abs() < 1e-5, "{mass}");
+        for i in 0..=600 {
+            let k = 0.1 * i as f64;
+            let want = if k > 0.0 { k.atan() / k } else { 1.0 };
+            let got: f64 = FLIGHT_KERNEL
+                .iter()
+                .map(|&(s, w)| w * (-0.5 * k * k * s * s).exp())
+                .sum();
+            assert!((got - want).abs() < 4e-3, "k = {k}: {got} against {want}");
+        }
+        let flight = Split::Regimes.components(1.0, true);
+        let mass: f64 = flight.iter().map(|c| c.1).sum();
+        assert!((mass - 1.0).abs() < 1e-12);
+        assert!(flight.iter().any(|c| c.0 == 0.0), "the cusp's point");
     }
 
     /// The importance sampler's albedo is the local mean over about a mean
@@ -2139,10 +2390,13 @@ mod tests {
                 let rho0 = 0.5 * (density.at(xi[0], xi[1]) + density.at(xe[0], xe[1]));
                 let a0 = 0.5 * (ai + ae);
                 // α_t in the variant's space, the vertex albedos linear.
+                // (α₀ ≤ 0.95 here: the darker regime's split.)
+                assert_eq!(bright_weight(a0), 0.0);
+                let dark = sv.pyramids().mapped.as_ref();
                 let agg = |k: &Gmm, mapped| sv.aggregate(0, &frame, k, mapped);
-                let (mut alpha_t, mut rho_bar) = agg(&meta.all.eval(d, a0, rho0).gmm, true);
+                let (mut alpha_t, mut rho_bar) = agg(&meta.all.eval(d, a0, rho0).gmm, dark);
                 if two_pass {
-                    (alpha_t, rho_bar) = agg(&meta.all.eval(d, alpha_t, rho_bar).gmm, true);
+                    (alpha_t, rho_bar) = agg(&meta.all.eval(d, alpha_t, rho_bar).gmm, dark);
                 }
                 let first = meta.first.as_ref().unwrap();
                 if interior == InteriorKernel::Always {
@@ -2157,11 +2411,11 @@ mod tests {
                         &mut k,
                     );
                     let plain = alpha_t;
-                    alpha_t = agg(&k, true).0;
+                    alpha_t = agg(&k, dark).0;
                     assert!((alpha_t - plain).abs() > 1e-3, "the ends must matter here");
                 }
-                let li = agg(&first.eval(d, a0, rho0).gmm, false).0;
-                let le = agg(&meta.last.eval(d, a0, rho0).gmm, false).0;
+                let li = agg(&first.eval(d, a0, rho0).gmm, None).0;
+                let le = agg(&meta.last.eval(d, a0, rho0).gmm, None).0;
                 assert!(
                     (li - le).abs() > 1e-3,
                     "the two vertex kernels must differ here"
