@@ -540,22 +540,23 @@ pub fn blur_mixture_transpose(
     )
 }
 
-/// Σ w·f(σ) over `mixture`, with `point` for σ = 0.
+/// Σ w·f(σ) over `mixture`, with `point` for σ = 0: the terms computed in
+/// parallel, summed in the mixture's order (the same result for any
+/// number of threads).
 fn mixture_sum(
     mixture: &[(f64, f64)],
     n: usize,
-    f: impl Fn(f64) -> Vec<f64>,
+    f: impl Fn(f64) -> Vec<f64> + Sync,
     point: &[f64],
 ) -> Vec<f64> {
+    use rayon::prelude::*;
+    let terms: Vec<Option<Vec<f64>>> = mixture
+        .par_iter()
+        .map(|&(sigma, _)| (sigma > 0.0).then(|| f(sigma)))
+        .collect();
     let mut out = vec![0.0; n];
-    for &(sigma, weight) in mixture {
-        let blurred;
-        let values = if sigma > 0.0 {
-            blurred = f(sigma);
-            &blurred
-        } else {
-            point
-        };
+    for (&(_, weight), term) in mixture.iter().zip(&terms) {
+        let values = term.as_deref().unwrap_or(point);
         for (o, v) in out.iter_mut().zip(values) {
             *o += weight * v;
         }

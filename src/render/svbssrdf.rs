@@ -856,10 +856,22 @@ impl Material {
             })
         };
         let two_scale = variant.space != AlbedoSpace::Linear;
-        let bright = (two_scale && variant.split == Split::Regimes)
-            .then(|| mapped(true))
-            .transpose()?;
-        let mapped = two_scale.then(|| mapped(false)).transpose()?;
+        // The bright regime is read only where α₀ = (α_i + α_e)/2 passes
+        // the ramp's start, so never on a map whose albedo does not.
+        let [ramp, _] = INTERIOR_RAMP;
+        let reaches = self
+            .albedo
+            .iter()
+            .any(|a| a.values.iter().any(|&v| v > ramp));
+        let (bright, mapped) = rayon::join(
+            || {
+                (two_scale && variant.split == Split::Regimes && reaches)
+                    .then(|| mapped(true))
+                    .transpose()
+            },
+            || two_scale.then(|| mapped(false)).transpose(),
+        );
+        let (bright, mapped) = (bright?, mapped?);
         let rho = match &self.density {
             Density::Map(rho) => Some(GaussianPyramid::new(rho)?),
             Density::Constant(_) => None,
