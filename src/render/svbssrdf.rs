@@ -2185,16 +2185,9 @@ mod tests {
         )
     }
 
-    /// Each albedo space aggregates its own mean: on a fine checker of 0.2
-    /// and 0.8 under a wide kernel with b = 0, α_t is 0.5 (linear),
-    /// √(0.2·0.8) = 0.4 (log), 1 − √(0.8·0.2) = 0.6 (absorption) and
-    /// 1 − ((√0.8 + √0.2)/2)² (transport); with a density map, ρ weights
-    /// φ(α). With b = 1 MFP, far coarser than the checker's texels, every
-    /// space gives the linear mean.
-    #[test]
-    fn each_albedo_space_aggregates_its_mean() {
-        let (_, t) = basis();
-        let (albedo, rho) = fine_checker(400);
+    /// One Gaussian of σ = 1.5 MFP at t = 0.5 on the x axis from the
+    /// origin: far wider than [`fine_checker`]'s texels.
+    fn wide_kernel() -> (Gmm, Frame) {
         let kernel = Gmm {
             components: vec![Component {
                 weight: 1.0,
@@ -2207,6 +2200,20 @@ mod tests {
             xi: [0.0, 0.0],
             axis: [1.0, 0.0],
         };
+        (kernel, frame)
+    }
+
+    /// Each albedo space aggregates its own mean: on a fine checker of 0.2
+    /// and 0.8 under a wide kernel with b = 0, α_t is 0.5 (linear),
+    /// √(0.2·0.8) = 0.4 (log), 1 − √(0.8·0.2) = 0.6 (absorption) and
+    /// 1 − ((√0.8 + √0.2)/2)² (transport); with a density map, ρ weights
+    /// φ(α). With b = 1 MFP, far coarser than the checker's texels, every
+    /// space gives the linear mean.
+    #[test]
+    fn each_albedo_space_aggregates_its_mean() {
+        let (_, t) = basis();
+        let (albedo, rho) = fine_checker(400);
+        let (kernel, frame) = wide_kernel();
         let mean =
             |w: f64, f: fn(f64) -> f64, inv: fn(f64) -> f64| inv((f(0.2) + w * f(0.8)) / (1.0 + w));
         let log = |a: f64| a.ln();
@@ -2263,18 +2270,7 @@ mod tests {
     fn regimes_split_keeps_the_points_share() {
         let (_, t) = basis();
         let (albedo, _) = fine_checker(400);
-        let kernel = Gmm {
-            components: vec![Component {
-                weight: 1.0,
-                t: 0.5,
-                s: 0.0,
-                sigma: 1.5,
-            }],
-        };
-        let frame = Frame {
-            xi: [0.0, 0.0],
-            axis: [1.0, 0.0],
-        };
+        let (kernel, frame) = wide_kernel();
         let space = AlbedoSpace::Transport;
         let bar = |a: f64| SPLIT_POINT_WEIGHT * a + (1.0 - SPLIT_POINT_WEIGHT) * 0.5;
         let want = space.inverse(0.5 * (space.forward(bar(0.2)) + space.forward(bar(0.8))));
