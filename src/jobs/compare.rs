@@ -1040,8 +1040,10 @@ fn scene_text(doc: &CompareDoc) -> String {
         r.sampling.name(),
         match r.variant.as_str() {
             "" => format!(
-                "default: density-scaled, vertex kernels, one pass, interior kernel above α {}",
-                crate::render::svbssrdf::INTERIOR_RAMP[0]
+                "default: density-scaled, vertex kernels, one pass, interior kernel above α {}, \
+                 two-scale √(1 − α) mean split at b = {} MFP (split kernel: regimes)",
+                crate::render::svbssrdf::INTERIOR_RAMP[0],
+                crate::render::svbssrdf::SPACE_BLUR
             ),
             v => v.trim_start_matches('+').to_string(),
         },
