@@ -27,7 +27,8 @@
 //!   ([`AlbedoSpace`]): α_t = φ⁻¹(⟨φ(ᾱ)⟩) + ⟨α − ᾱ⟩ with ᾱ = S ∗ α
 //!   ([`pyramid::blur_mixture`]), by default φ(α) = √(1 − α), b =
 //!   [`SPACE_BLUR`] and S the darker regime's split kernel of [`Split`]
-//!   (0.2·δ + 0.8·G_b) at every albedo; in the linear space α_t = ⟨α⟩. Point albedos are the
+//!   (0.2·δ + 0.8·G_b) at every albedo; in the linear space α_t = ⟨α⟩.
+//!   Point albedos are the
 //!   texel under the point. The kernels' *shapes* are the meta-model's at
 //!   an **anchor** map A, held fixed while α varies: the vertex kernels at
 //!   (A_i + A_e)/2, the all-vertex kernel at the anchor's first-pass α_t

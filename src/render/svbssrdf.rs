@@ -828,12 +828,12 @@ impl Material {
             Ok(Aggregand { alpha, rho_alpha })
         };
         let linear = aggregand(&self.albedo)?;
+        let (b, two_scale) = (variant.space_blur, variant.space != AlbedoSpace::Linear);
+        if two_scale && !(b.is_finite() && b >= 0.0) {
+            return Err(Error::param("space_blur", b, "finite and >= 0 (MFP)"));
+        }
         // The two-scale aggregands under one split kernel.
         let mapped = |bright: bool| -> Result<Mapped> {
-            let b = variant.space_blur;
-            if !(b.is_finite() && b >= 0.0) {
-                return Err(Error::param("space_blur", b, "finite and >= 0 (MFP)"));
-            }
             let means = self.local_means(&variant.split.components(b, bright))?;
             let map = |f: &dyn Fn(f64, f64) -> f64| {
                 means
@@ -855,7 +855,6 @@ impl Material {
                 residual: aggregand(&residual)?,
             })
         };
-        let two_scale = variant.space != AlbedoSpace::Linear;
         // The bright regime is read only where α₀ = (α_i + α_e)/2 passes
         // the ramp's start, so never on a map whose albedo does not.
         let [ramp, _] = INTERIOR_RAMP;
@@ -1295,17 +1294,15 @@ impl SvBssrdf {
     ) -> (f64, f64, Option<f64>) {
         let p = self.pyramids();
         let dark = p.mapped.as_ref();
+        let mut under = |q| self.total_albedo(interior, c, frame, d, rho, q, scratch);
         match p.bright.as_ref() {
-            Some(q) if bright >= 1.0 => {
-                self.total_albedo(interior, c, frame, d, rho, Some(q), scratch)
-            }
+            Some(q) if bright >= 1.0 => under(Some(q)),
             Some(q) if bright > 0.0 => {
-                let (lo, rho_bar, le) =
-                    self.total_albedo(interior, c, frame, d, rho, dark, scratch);
-                let (hi, _, _) = self.total_albedo(interior, c, frame, d, rho, Some(q), scratch);
+                let (lo, rho_bar, le) = under(dark);
+                let (hi, _, _) = under(Some(q));
                 (lo + bright * (hi - lo), rho_bar, le)
             }
-            _ => self.total_albedo(interior, c, frame, d, rho, dark, scratch),
+            _ => under(dark),
         }
     }
 
