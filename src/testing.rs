@@ -22,6 +22,12 @@ pub fn chi2_critical(dof: usize, alpha: f64) -> f64 {
     k * (1.0 - h + z * h.sqrt()).powi(3)
 }
 
+/// A standard normal deviate from `rng` (Box–Muller).
+pub fn standard_normal(rng: &mut crate::forward::rng::PathRng) -> f64 {
+    let (u1, u2) = (1.0 - rng.uniform(), rng.uniform());
+    (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+}
+
 /// z with P(Z > z) = alpha for a standard normal, by bisection on erfc.
 pub fn normal_upper_quantile(alpha: f64) -> f64 {
     let (mut lo, mut hi) = (0.0f64, 40.0f64);

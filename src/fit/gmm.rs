@@ -751,12 +751,6 @@ mod tests {
         }
     }
 
-    /// A standard normal deviate (Box–Muller).
-    fn normal(rng: &mut PathRng) -> f64 {
-        let (u1, u2) = (1.0 - rng.uniform(), rng.uniform());
-        (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
-    }
-
     /// A Poisson deviate of mean `lambda`: inversion below 50, rounded
     /// normal above.
     fn poisson(rng: &mut PathRng, lambda: f64) -> f64 {
@@ -771,7 +765,9 @@ mod tests {
             }
             n as f64
         } else {
-            (lambda + lambda.sqrt() * normal(rng)).round().max(0.0)
+            (lambda + lambda.sqrt() * crate::testing::standard_normal(rng))
+                .round()
+                .max(0.0)
         }
     }
 

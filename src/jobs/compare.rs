@@ -42,12 +42,33 @@ pub struct CurvePoint {
     pub setup_s: f64,
     #[serde(with = "crate::doc::nan_as_null")]
     pub rel_rmse: f64,
+    /// The smallest error the truth resolves at this point
+    /// ([`resolution`]); below it `rel_rmse` is not a measurement, only
+    /// `rel_rmse ≤ hypot(rel_rmse, resolution)` is.
+    #[serde(default)]
+    pub resolution: f64,
 }
 
 impl CurvePoint {
     /// The render time: `wall_s` less the set-up.
     pub fn render_s(&self) -> f64 {
         self.wall_s - self.setup_s
+    }
+
+    /// Whether the truth resolves this point's error (`rel_rmse` at or
+    /// above [`CurvePoint::resolution`]).
+    pub fn resolved(&self) -> bool {
+        self.rel_rmse >= self.resolution
+    }
+
+    /// An upper bound on the error: `rel_rmse` where it is resolved, else
+    /// `hypot(rel_rmse, resolution)` ([`resolution`]).
+    pub fn error_bound(&self) -> f64 {
+        if self.resolved() {
+            self.rel_rmse
+        } else {
+            self.rel_rmse.hypot(self.resolution)
+        }
     }
 }
 
@@ -61,6 +82,34 @@ pub struct Curve {
 /// The truth-noise-subtracted relative RMSE of `m` against `t` (module docs).
 pub fn rel_error(m: &Image, t: &Image) -> f64 {
     super::render::rel_rmse(m, t, false)
+}
+
+/// How many standard deviations of the truth's noise [`resolution`] spans:
+/// two, a one-sided confidence of 97.7 % that an unresolved error lies
+/// below its bound.
+pub const RESOLUTION_Z: f64 = 2.0;
+
+/// The smallest relative error that a comparison of `m` against the truth
+/// `t` resolves, as a relative RMSE.
+///
+/// Per pixel and channel the difference is d = δ + ε with δ the method's
+/// error and ε ~ N(0, σ_t²) the truth's noise, so the squared error with
+/// the truth's variance subtracted, S = Σd² − Σσ_t², estimates Σδ² with
+/// variance Var S = Σ(4δ²σ_t² + 2σ_t⁴), its first sum estimated without
+/// bias by Σ4(d² − σ_t²)σ_t² (at least 0).
+/// The resolution is √(z·√(Var S) / Σt²) with z = [`RESOLUTION_Z`]: an
+/// error below it is indistinguishable from zero, and the error itself lies
+/// below hypot([`rel_error`], resolution) with that confidence.
+pub fn resolution(m: &Image, t: &Image) -> f64 {
+    let m = super::render::broadcast(m, t.channels);
+    let (mut cross, mut noise, mut norm) = (0.0, 0.0, 0.0);
+    for ((&mk, &tk), &sk) in m.mean.iter().zip(&t.mean).zip(&t.stderr) {
+        let (d2, s2) = ((mk - tk).powi(2), sk * sk);
+        cross += 4.0 * (d2 - s2) * s2;
+        noise += 2.0 * s2 * s2;
+        norm += tk * tk;
+    }
+    (RESOLUTION_Z * (cross.max(0.0) + noise).sqrt() / norm).sqrt()
 }
 
 /// Every budget of the curves must be ≥ 1 (checked before any work).
@@ -125,6 +174,7 @@ pub fn error_vs_time(
                     wall_s,
                     setup_s,
                     rel_rmse: rel_error(&img, truth_img),
+                    resolution: resolution(&img, truth_img),
                 },
             );
         }
@@ -144,6 +194,7 @@ pub fn error_vs_time(
                     wall_s,
                     setup_s,
                     rel_rmse: rel_error(&img, truth_img),
+                    resolution: resolution(&img, truth_img),
                 },
             );
         }
@@ -173,16 +224,29 @@ pub fn plot_curves(path: &Path, scene: &str, curves: &[Curve]) -> Result<()> {
         .iter()
         .enumerate()
         .map(|(k, c)| {
+            // An unresolved error at its bound, so the point stays on the
+            // log axis and says what it is.
             let pts = c
                 .points
                 .iter()
-                .map(|p| (p.render_s(), p.rel_rmse))
+                .map(|p| (p.render_s(), p.error_bound()))
                 .collect();
+            let bound = |p: &CurvePoint, label: String| {
+                if p.resolved() {
+                    label
+                } else {
+                    format!("{label} (bound)")
+                }
+            };
             let (series, marks) = if c.method == Target::Reference {
-                let marks = c.points.iter().map(|p| count(p.budget)).collect();
+                let marks = c.points.iter().map(|p| bound(p, count(p.budget))).collect();
                 (Series::dashed("reference (paths)", pts, k), marks)
             } else {
-                let marks = c.points.iter().map(|p| p.budget.to_string()).collect();
+                let marks = c
+                    .points
+                    .iter()
+                    .map(|p| bound(p, p.budget.to_string()))
+                    .collect();
                 (
                     Series::line(format!("{} (spp)", c.method.name()), pts, k),
                     marks,
@@ -271,15 +335,25 @@ pub struct Speedup {
     /// (set-up included), set-up and error (written inline).
     #[serde(flatten)]
     pub point: CurvePoint,
-    /// Reference render time to the same error ([`reference_time_for`]).
+    /// Reference render time to the same error ([`reference_time_for`]),
+    /// read at [`CurvePoint::error_bound`].
     pub reference_s: f64,
     /// `reference_s` over the model's render time (set-up excluded).
     pub ratio: f64,
-    /// The model's lowest error over its budgets (its floor, bias-bound).
+    /// The truth does not resolve the point's error
+    /// ([`CurvePoint::resolved`]): the error is read at its upper bound, so
+    /// the ratios are lower bounds.
+    #[serde(default)]
+    pub lower_bound: bool,
+    /// The model's lowest error over its budgets (its floor, bias-bound),
+    /// an upper bound where the truth does not resolve it.
     #[serde(with = "crate::doc::nan_as_null")]
     pub floor: f64,
+    /// `floor` is an upper bound ([`CurvePoint::error_bound`]).
+    #[serde(default)]
+    pub floor_bound: bool,
     /// At equal time: the reference's error after the model's render time
-    /// at this budget ([`reference_error_at`]); `reference_error / rel_rmse`
+    /// at this budget ([`reference_error_at`]); over the model's error it
     /// is how many times lower the model's error is.
     #[serde(default = "f64_nan", with = "crate::doc::nan_as_null")]
     pub reference_error: f64,
@@ -294,6 +368,34 @@ impl Speedup {
     pub fn ratio_with_setup(&self) -> f64 {
         self.reference_s / self.point.wall_s.max(1e-9)
     }
+
+    /// How many times lower the model's error is than the reference's in
+    /// equal time (a lower bound with [`Speedup::lower_bound`]).
+    pub fn error_ratio(&self) -> f64 {
+        self.reference_error / self.point.error_bound()
+    }
+
+    /// "≥ " before a ratio that is a lower bound, else nothing.
+    pub fn at_least(&self) -> &'static str {
+        if self.lower_bound { "≥ " } else { "" }
+    }
+
+    /// The model's error as a percentage: "< x %" at its upper bound where
+    /// the truth does not resolve it.
+    pub fn error_text(&self) -> String {
+        bounded_pct(self.point.error_bound(), self.lower_bound)
+    }
+
+    /// The floor as a percentage, "< x %" where it is an upper bound.
+    pub fn floor_text(&self) -> String {
+        bounded_pct(self.floor, self.floor_bound)
+    }
+}
+
+/// A percentage ([`super::report::pct`]), after "< " where it is a bound.
+fn bounded_pct(v: f64, bound: bool) -> String {
+    let p = super::report::pct(Some(v));
+    if bound { format!("< {p}") } else { p }
 }
 
 /// Per model curve: the point where it beats brute force by the most (at
@@ -306,21 +408,23 @@ pub fn speedups(curves: &[Curve]) -> Vec<Speedup> {
         .iter()
         .filter(|c| c.method != Target::Reference)
         .filter_map(|c| {
-            let floor = c
+            let lowest = c
                 .points
                 .iter()
-                .map(|p| p.rel_rmse)
-                .fold(f64::INFINITY, f64::min);
+                .min_by(|a, b| a.error_bound().total_cmp(&b.error_bound()))?;
+            let (floor, floor_bound) = (lowest.error_bound(), !lowest.resolved());
             c.points
                 .iter()
                 .filter_map(|p| {
-                    let t = reference_time_for(reference, p.rel_rmse)?;
+                    let t = reference_time_for(reference, p.error_bound())?;
                     Some(Speedup {
                         method: c.method,
                         point: p.clone(),
                         reference_s: t,
                         ratio: t / p.render_s().max(1e-9),
+                        lower_bound: !p.resolved(),
                         floor,
+                        floor_bound,
                         reference_error: reference_error_at(reference, p.render_s())
                             .unwrap_or(f64::NAN),
                     })
@@ -408,18 +512,20 @@ impl std::fmt::Display for Speedup {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "{:<11} {:>5} spp {:>7.3} s (+{:.3} s set-up)  error {:>6.2} %  reference needs \
-             {:>7.3} s  ({:.2}×; {:.2}× with set-up); in equal time it errs {:.2} % ({:.2}×)",
+            "{:<11} {:>5} spp {:>7.3} s (+{:.3} s set-up)  error {:>8}  reference needs \
+             {:>7.3} s  ({a}{:.2}×; {a}{:.2}× with set-up); in equal time it errs {:.2} % \
+             ({a}{:.2}×)",
             self.method.name(),
             self.point.budget,
             self.point.render_s(),
             self.point.setup_s,
-            100.0 * self.point.rel_rmse,
+            self.error_text(),
             self.reference_s,
             self.ratio,
             self.ratio_with_setup(),
             100.0 * self.reference_error,
-            self.reference_error / self.point.rel_rmse,
+            self.error_ratio(),
+            a = self.at_least(),
         )
     }
 }
@@ -806,7 +912,8 @@ pub fn report_blocks(doc: &CompareDoc, out: &Path) -> Vec<Block> {
                 "relative RMSE against a truth of {} reference paths ({:.2} s, independent \
                  seed), each image's own noise included, against the render time of each \
                  budget (set-up excluded); the reference dashed; each marker is labelled with \
-                 its budget: spp for the models, paths for the reference",
+                 its budget: spp for the models, paths for the reference; \"(bound)\": an error \
+                 the truth does not resolve, drawn at its upper bound",
                 count(curves.truth_paths.unwrap_or(0)),
                 curves.truth_wall_s.unwrap_or(0.0)
             ),
@@ -836,13 +943,13 @@ pub fn report_blocks(doc: &CompareDoc, out: &Path) -> Vec<Block> {
                         p.point.budget.to_string(),
                         num(Some(p.point.render_s())),
                         num(Some(p.point.setup_s)),
-                        pct(Some(p.point.rel_rmse)),
+                        p.error_text(),
                         num(Some(p.reference_s)),
-                        format!("{:.2}×", p.ratio),
-                        format!("{:.2}×", p.ratio_with_setup()),
+                        format!("{}{:.2}×", p.at_least(), p.ratio),
+                        format!("{}{:.2}×", p.at_least(), p.ratio_with_setup()),
                         pct(Some(p.reference_error)),
-                        format!("{:.2}×", p.reference_error / p.point.rel_rmse),
-                        pct(Some(p.floor)),
+                        format!("{}{:.2}×", p.at_least(), p.error_ratio()),
+                        p.floor_text(),
                     ]
                 })
                 .collect(),
@@ -853,7 +960,10 @@ pub fn report_blocks(doc: &CompareDoc, out: &Path) -> Vec<Block> {
              beyond its points, e ∝ t^(−1/2)); a speed-up below 1× means the reference is \
              faster at that error. In equal time: the reference's error after the model's \
              render time, read off the same curve, and how many times the model's error it is. \
-             The floor is the model's lowest error over its budgets."
+             The floor is the model's lowest error over its budgets. An error written \"< x\" \
+             is one the truth does not resolve: it is read at its upper bound x (two standard \
+             deviations of the truth's noise), and the ratios beside it, marked ≥, are lower \
+             bounds."
                 .into(),
         ));
     }
@@ -1237,7 +1347,10 @@ pub fn verdict(doc: &CompareDoc) -> String {
     if let Some(s) = learned {
         let how = |ratio: f64| {
             if ratio >= 1.0 {
-                format!("{ratio:.1}× faster")
+                format!(
+                    "{}{ratio:.1}× faster",
+                    if s.lower_bound { "at least " } else { "" }
+                )
             } else {
                 format!("{:.1}× slower", 1.0 / ratio)
             }
@@ -1249,16 +1362,17 @@ pub fn verdict(doc: &CompareDoc) -> String {
         text.push_str(&format!(
             ". At equal error{pass} learned renders {} than the reference ({} error at {} spp: \
              {} against the reference's {}; with its {} set-up counted, {}). In equal time \
-             the reference errs {}, {:.1}× as much",
+             the reference errs {}, {}{:.1}× as much",
             how(s.ratio),
-            pct(Some(s.point.rel_rmse)),
+            s.error_text(),
             s.point.budget,
             secs(s.point.render_s()),
             secs(s.reference_s),
             secs(s.point.setup_s),
             how(s.ratio_with_setup()),
             pct(Some(s.reference_error)),
-            s.reference_error / s.point.rel_rmse,
+            if s.lower_bound { "at least " } else { "" },
+            s.error_ratio(),
         ));
     }
     text.push('.');
@@ -1316,6 +1430,12 @@ pub fn glossary() -> Vec<Block> {
             "error floor",
             "a model's lowest error over its budgets: where more samples stop helping (its bias).",
         ),
+        (
+            "\"< x\" and ≥ in the curves",
+            "an error the truth does not resolve (below two standard deviations of the truth's \
+             noise in the squared error): it is read at its upper bound x, and a speed-up or \
+             error ratio from it is a lower bound.",
+        ),
     ];
     vec![
         Block::Heading(2, "Terms".into()),
@@ -1342,9 +1462,61 @@ mod tests {
                     wall_s,
                     setup_s: 0.0,
                     rel_rmse,
+                    resolution: 0.0,
                 })
                 .collect(),
         }
+    }
+
+    #[test]
+    fn an_unresolved_error_gives_a_lower_bound_on_the_speed_up() {
+        let r = curve("reference", &[(1.0, 0.1), (100.0, 0.01)]);
+        let mut m = curve("learned", &[(0.5, 0.05), (2.0, 0.0)]);
+        m.points[1].resolution = 0.005;
+        let s = &speedups(&[r, m])[0];
+        // 0.005 costs the reference 400 s: at least 200× at 2 s, where the
+        // resolved point gives 8×.
+        assert!(s.lower_bound && s.floor_bound, "{s:?}");
+        assert!((s.ratio - 200.0).abs() < 1e-9, "{s:?}");
+        assert_eq!(
+            (s.at_least(), s.error_text()),
+            ("≥ ", "< 0.5 %".to_string())
+        );
+    }
+
+    /// Truths drawn with known noise around an exact image, and a method
+    /// off it by a known error: the error lies below its bound, an exact
+    /// method reads below the resolution, and the resolution is well below
+    /// the truth's own noise (what the subtraction buys).
+    #[test]
+    fn the_resolution_bounds_the_error_under_the_truths_noise() {
+        use crate::forward::rng::PathRng;
+        use crate::testing::standard_normal;
+        let (n, sigma, trials) = (32, 0.05, 200);
+        let exact: Vec<f64> = (0..n * n).map(|k| 1.0 + 0.5 * ((k % 7) as f64)).collect();
+        let norm: f64 = exact.iter().map(|v| v * v).sum();
+        let noise = (n * n) as f64 * sigma * sigma / norm;
+        let (mut covered, mut exact_below) = (0, 0);
+        for trial in 0..trials {
+            let mut rng = PathRng::new(11, trial);
+            let mut truth = Image::zeros(n, 1);
+            for (k, v) in exact.iter().enumerate() {
+                truth.mean[k] = v + sigma * standard_normal(&mut rng);
+                truth.stderr[k] = sigma;
+            }
+            let mut m = Image::zeros(n, 1);
+            m.mean = exact.iter().map(|v| v * 1.003).collect();
+            let (e, res) = (rel_error(&m, &truth), resolution(&m, &truth));
+            covered += (0.003 <= e.hypot(res)) as usize;
+            assert!(res < 0.4 * noise.sqrt(), "{res} against {}", noise.sqrt());
+            m.mean = exact.clone();
+            exact_below += (rel_error(&m, &truth) < resolution(&m, &truth)) as usize;
+        }
+        // 97.7 % each in expectation; 90 % of 200 fails with p < 1e-4.
+        assert!(
+            covered >= 180 && exact_below >= 180,
+            "{covered} {exact_below}"
+        );
     }
 
     #[test]
