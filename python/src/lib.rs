@@ -465,6 +465,7 @@ fn render<'py>(
                 let m = metrics(img, &reference.image);
                 entry.set_item("rel_rmse", m.rel_rmse)?;
                 entry.set_item("rel_bias", m.rel_bias)?;
+                entry.set_item("resolution", m.resolution)?;
                 entry.set_item(
                     "channels",
                     m.channels

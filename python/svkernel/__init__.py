@@ -363,8 +363,10 @@ def render(
     ...), each a dict of ``mean`` and ``stderr`` images of shape
     ``(resolution, resolution, channels)``, ``seconds``, and for the model
     methods the metrics against the reference: ``rel_rmse`` (relative RMSE
-    with both images' noise subtracted), ``rel_bias`` and ``channels``
-    (per-channel pairs). ``passes`` lists one such dict per pass (``tag``,
+    with both images' noise subtracted), ``rel_bias``, ``resolution`` (the
+    smallest ``rel_rmse`` the two images' noise resolves: below it the
+    error is at most ``hypot(rel_rmse, resolution)``) and ``channels``
+    (per-channel pairs of ``rel_rmse`` and ``rel_bias``). ``passes`` lists one such dict per pass (``tag``,
     ``density``, ``methods``) for scenes with a density sweep; the top-level
     entries are the first pass's.
     """

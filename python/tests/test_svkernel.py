@@ -260,7 +260,9 @@ def test_render_round_trip_equals_the_command_line(tmp_path):
             assert r[method]["stderr"].shape == got.shape
     doc = json.loads((tmp_path / "out" / "render.json").read_text())
     rows = {m["method"]: m for m in doc["passes"][0]["methods"]}
-    assert from_dict["learned"]["rel_rmse"] == pytest.approx(rows["learned"]["metrics"]["rel_rmse"])
+    for key in ["rel_rmse", "resolution"]:
+        assert from_dict["learned"][key] == pytest.approx(rows["learned"]["metrics"][key])
+    assert from_dict["learned"]["resolution"] > 0
     assert "rel_rmse" not in from_dict["reference"]
     assert len(from_dict["passes"]) == 1
 

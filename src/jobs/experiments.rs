@@ -116,8 +116,8 @@ pub struct Row {
     /// √(Σσ²/Σr²): the image's relative noise.
     #[serde(with = "crate::doc::nan_as_null")]
     pub rel_noise: f64,
-    /// The smallest rel RMSE this comparison resolves: ν·(2/N)^{1/4}, ν the
-    /// two images' combined relative noise over N pixel values.
+    /// The smallest rel RMSE this comparison resolves
+    /// ([`super::render::resolution`], both images' noise).
     #[serde(with = "crate::doc::nan_as_null")]
     pub resolution: f64,
 }
@@ -213,16 +213,6 @@ fn configs(name: &str, settings: &Settings) -> Vec<Config> {
     c
 }
 
-/// The smallest relative RMSE a comparison of `img` with `r` resolves:
-/// the noise-subtracted squared error Σ(m − r)² − Σ(σ_m² + σ_r²) has a
-/// standard deviation of about √(2/N)·Σ(σ_m² + σ_r²) over N independent
-/// pixels, so a bias pattern below ν·(2/N)^{1/4} (ν the two images'
-/// combined relative noise) is indistinguishable from noise.
-fn resolution(img: &Image, r: &Image) -> f64 {
-    let n = img.mean.len() as f64;
-    (rel_noise(img, r).powi(2) + rel_noise(r, r).powi(2)).sqrt() * (2.0 / n).powf(0.25)
-}
-
 /// √(Σσ²/Σr²) of `img` against the reference means `r`.
 fn rel_noise(img: &Image, r: &Image) -> f64 {
     let var: f64 = img.stderr.iter().map(|s| s * s).sum();
@@ -285,7 +275,7 @@ pub fn run(settings: &Settings, opts: &RenderOptions) -> Result<Vec<Row>> {
                     rel_rmse: m.rel_rmse,
                     rel_bias: m.rel_bias,
                     rel_noise: rel_noise(&img.image, reference),
-                    resolution: resolution(&img.image, reference),
+                    resolution: m.resolution,
                 });
             }
         }
@@ -355,9 +345,13 @@ fn variant_table(
             // error (a black reference) is no comparison and is not counted.
             let comparable = a.rel_rmse.is_finite() && b.rel_rmse.is_finite();
             n += usize::from(comparable);
+            // Both within their noise is a tie too.
+            let unresolved = |r: &Row| r.rel_rmse < r.resolution;
             let better = if !comparable {
                 "—"
-            } else if (a.rel_rmse - b.rel_rmse).abs() <= 0.02 * a.rel_rmse.max(b.rel_rmse) {
+            } else if (a.rel_rmse - b.rel_rmse).abs() <= 0.02 * a.rel_rmse.max(b.rel_rmse)
+                || (unresolved(a) && unresolved(b))
+            {
                 "tie"
             } else if b.rel_rmse < a.rel_rmse {
                 wins += 1;
@@ -368,8 +362,8 @@ fn variant_table(
             table.push(vec![
                 label(&key),
                 m.name().to_string(),
-                err(Some(a.rel_rmse)),
-                err(Some(b.rel_rmse)),
+                err(Some(a.rel_rmse), a.resolution),
+                err(Some(b.rel_rmse), b.resolution),
                 pct(Some(a.rel_bias)),
                 pct(Some(b.rel_bias)),
                 better.to_string(),
@@ -404,8 +398,8 @@ pub fn report(doc: &ExperimentsDoc, plot: &Path) -> Result<Vec<Block>> {
     let mut b = vec![
         Block::Para(
             "Every number below is measured by the command that follows, against each scene's \
-             brute-force reference; rel RMSE has both images' noise subtracted (\"< noise\": \
-             the method's bias is below what the budgets resolve)."
+             brute-force reference; rel RMSE has both images' noise subtracted (\"< x\": \
+             the method's bias is below what the budgets resolve, and at most x)."
                 .into(),
         ),
         Block::Code(doc.provenance.command_line.join(" ")),
@@ -452,12 +446,17 @@ fn sections(rows: &[Row]) -> (Vec<Block>, Option<(usize, Vec<crate::jobs::plot::
     let (mut learned_wins, mut manual_wins, mut n) = (0, 0, 0);
     for key in passes(rows) {
         let k = (key.0.as_str(), key.1.as_str());
-        let e: Vec<Option<f64>> = methods
+        let found: Vec<Option<&Row>> = methods
             .iter()
-            .map(|&m| find(rows, k, m, "", Sampling::Importance, None).map(|r| r.rel_rmse))
+            .map(|&m| find(rows, k, m, "", Sampling::Importance, None))
             .collect();
+        let e: Vec<Option<f64>> = found.iter().map(|r| r.map(|r| r.rel_rmse)).collect();
         let mut row = vec![label(&key)];
-        row.extend(e.iter().map(|v| err(*v)));
+        row.extend(
+            found
+                .iter()
+                .map(|r| err(r.map(|r| r.rel_rmse), r.map_or(0.0, |r| r.resolution))),
+        );
         row.push(pct(find(
             rows,
             k,
@@ -546,7 +545,7 @@ fn sections(rows: &[Row]) -> (Vec<Block>, Option<(usize, Vec<crate::jobs::plot::
             row.push(pct(c.map(|r| r.rel_noise * r.wall_s.sqrt())));
         }
         for c in &cells {
-            row.push(err(c.map(|r| r.rel_rmse)));
+            row.push(err(c.map(|r| r.rel_rmse), c.map_or(0.0, |r| r.resolution)));
         }
         table.push(row);
     }
@@ -594,7 +593,7 @@ fn sections(rows: &[Row]) -> (Vec<Block>, Option<(usize, Vec<crate::jobs::plot::
                 }),
                 shape.map_or("—".into(), |m| m.coefficients.to_string()),
                 num(Some(r.wall_s)),
-                err(Some(r.rel_rmse)),
+                err(Some(r.rel_rmse), r.resolution),
                 pct(Some(r.resolution)),
                 pct(Some(r.rel_bias)),
             ]);
@@ -626,8 +625,7 @@ fn sections(rows: &[Row]) -> (Vec<Block>, Option<(usize, Vec<crate::jobs::plot::
         ));
         b.push(Block::Para(
             "resolvable: the smallest rel RMSE the comparison can tell from the two images' \
-             noise, ν·(2/N)^{1/4} over N pixel values with ν their combined relative noise; \
-             \"< noise\" rows lie below it."
+             noise, two standard deviations of the noise-subtracted squared error; \"< x\" rows lie below it, with x the error's upper bound."
                 .into(),
         ));
         use crate::jobs::plot::Series;
@@ -653,7 +651,7 @@ fn sections(rows: &[Row]) -> (Vec<Block>, Option<(usize, Vec<crate::jobs::plot::
                 shape.map_or("—".into(), |m| m.terms.to_string()),
                 shape.map_or("—".into(), |m| m.degree.to_string()),
                 num(Some(r.wall_s)),
-                err(Some(r.rel_rmse)),
+                err(Some(r.rel_rmse), r.resolution),
                 pct(Some(r.resolution)),
                 pct(Some(r.rel_bias)),
             ]);

@@ -260,7 +260,11 @@ pub struct Metrics {
     /// Σ(m − r)/Σ r: mean relative bias.
     #[serde(with = "crate::doc::nan_as_null")]
     pub rel_bias: f64,
-    /// The same two numbers per channel (Y, or R, G, B).
+    /// The smallest `rel_rmse` the two images' noise resolves
+    /// ([`resolution`]); below it the error is only bounded.
+    #[serde(default, with = "crate::doc::nan_as_null")]
+    pub resolution: f64,
+    /// The same numbers per channel (Y, or R, G, B).
     pub channels: Vec<ChannelMetrics>,
 }
 
@@ -271,29 +275,70 @@ pub struct ChannelMetrics {
     pub rel_rmse: f64,
     #[serde(with = "crate::doc::nan_as_null")]
     pub rel_bias: f64,
+    #[serde(default, with = "crate::doc::nan_as_null")]
+    pub resolution: f64,
 }
 
+/// How many standard deviations of the noise [`resolution`] spans: two, a
+/// one-sided confidence of 97.7 % that an unresolved error lies below its
+/// bound.
+pub const RESOLUTION_Z: f64 = 2.0;
+
 /// Sums over the pixels of channels `cs` of `m` against `r`: squared error,
-/// noise variance (σ_r², plus σ_m² if `own`), Σr², Σ(m − r), Σr.
-fn error_sums(m: &Image, r: &Image, own: bool, cs: std::ops::Range<usize>) -> [f64; 5] {
+/// noise variance v (σ_r², plus σ_m² if `own`), Σr², Σ(m − r), Σr, and
+/// for [`resolution`] Σ4(d² − v)v and Σ2v².
+fn error_sums(m: &Image, r: &Image, own: bool, cs: std::ops::Range<usize>) -> [f64; 7] {
     let n2 = r.resolution * r.resolution;
-    let mut s = [0.0; 5];
+    let mut s = [0.0; 7];
     for k in cs.start * n2..cs.end * n2 {
         let d = m.mean[k] - r.mean[k];
+        let v = r.stderr[k].powi(2) + if own { m.stderr[k].powi(2) } else { 0.0 };
         s[0] += d * d;
-        s[1] += r.stderr[k].powi(2) + if own { m.stderr[k].powi(2) } else { 0.0 };
+        s[1] += v;
         s[2] += r.mean[k] * r.mean[k];
         s[3] += d;
         s[4] += r.mean[k];
+        s[5] += 4.0 * (d * d - v) * v;
+        s[6] += 2.0 * v * v;
     }
     s
 }
 
-/// (relative RMSE, relative bias) from [`error_sums`].
-fn from_sums([se, noise, norm, diff, sum]: [f64; 5]) -> ChannelMetrics {
+/// (relative RMSE, relative bias, resolution) from [`error_sums`].
+fn from_sums([se, noise, norm, diff, sum, cross, quad]: [f64; 7]) -> ChannelMetrics {
     ChannelMetrics {
         rel_rmse: ((se - noise).max(0.0) / norm).sqrt(),
         rel_bias: diff / sum,
+        resolution: (RESOLUTION_Z * (cross.max(0.0) + quad).sqrt() / norm).sqrt(),
+    }
+}
+
+/// The smallest relative error that a comparison of `m` against `r`
+/// resolves, as a relative RMSE; the noise is σ_r², plus σ_m² if
+/// `subtract_own_noise` (as in [`rel_rmse`]).
+///
+/// Per pixel and channel the difference is d = δ + ε with δ the error and
+/// ε ~ N(0, v) the noise, so S = Σd² − Σv estimates Σδ² with variance
+/// Var S = Σ(4δ²v + 2v²), its first sum estimated without bias by
+/// Σ4(d² − v)v (at least 0). The resolution is √(z·√(Var S)/Σr²) with
+/// z = [`RESOLUTION_Z`]: an error below it is indistinguishable from zero,
+/// and the error lies below hypot([`rel_rmse`], resolution) with that
+/// confidence. Where the noise is concentrated in a few pixels (near a
+/// light) √(Σv²) approaches Σv, and the resolution approaches the noise's
+/// own relative RMSE.
+pub fn resolution(m: &Image, r: &Image, subtract_own_noise: bool) -> f64 {
+    let m = broadcast(m, r.channels);
+    from_sums(error_sums(&m, r, subtract_own_noise, 0..r.channels)).resolution
+}
+
+/// The upper bound on an error `rel_rmse` of resolution `resolution`:
+/// `rel_rmse` itself where it is resolved, else hypot(rel_rmse,
+/// resolution) ([`resolution`]).
+pub fn error_bound(rel_rmse: f64, resolution: f64) -> f64 {
+    if rel_rmse >= resolution {
+        rel_rmse
+    } else {
+        rel_rmse.hypot(resolution)
     }
 }
 
@@ -306,6 +351,7 @@ pub fn metrics(m: &Image, r: &Image) -> Metrics {
     Metrics {
         rel_rmse: all.rel_rmse,
         rel_bias: all.rel_bias,
+        resolution: all.resolution,
         channels: (0..r.channels)
             .map(|c| from_sums(error_sums(&m, r, true, c..c + 1)))
             .collect(),
@@ -903,7 +949,7 @@ impl std::fmt::Display for MethodDoc {
             self.method.name(),
             self.wall_s,
             self.setup_s,
-            err(m.map(|m| m.rel_rmse)),
+            err(m.map(|m| m.rel_rmse), m.map_or(0.0, |m| m.resolution)),
             pct(m.map(|m| m.rel_bias))
         )
     }
@@ -1110,6 +1156,58 @@ fn uniform() -> Allocation {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// References drawn with known noise around an exact image, and a
+    /// method off it by a known error, noiseless or noisy itself: the error
+    /// lies below its bound, an exact method reads below the resolution,
+    /// and the resolution is well below the noise's own relative RMSE
+    /// (what the subtraction buys on a uniform noise).
+    #[test]
+    fn the_resolution_bounds_the_error_under_the_noise() {
+        use crate::forward::rng::PathRng;
+        use crate::testing::standard_normal;
+        let (n, sigma, trials) = (32, 0.05, 200);
+        let exact: Vec<f64> = (0..n * n).map(|k| 1.0 + 0.5 * ((k % 7) as f64)).collect();
+        let norm: f64 = exact.iter().map(|v| v * v).sum();
+        let noise = ((n * n) as f64 * sigma * sigma / norm).sqrt();
+        for own in [false, true] {
+            let (mut covered, mut exact_below) = (0, 0);
+            for trial in 0..trials {
+                let mut rng = PathRng::new(11, trial);
+                let mut draw = |scale: f64, noisy: bool| {
+                    let mut img = Image::zeros(n, 1);
+                    for (k, v) in exact.iter().enumerate() {
+                        let s = if noisy { sigma } else { 0.0 };
+                        img.mean[k] = v * scale + s * standard_normal(&mut rng);
+                        img.stderr[k] = s;
+                    }
+                    img
+                };
+                let reference = draw(1.0, true);
+                let (off, on) = (draw(1.003, own), draw(1.0, own));
+                let (e, res) = (
+                    rel_rmse(&off, &reference, own),
+                    resolution(&off, &reference, own),
+                );
+                covered += usize::from(0.003 <= error_bound(e, res));
+                assert!(res < 0.5 * noise, "{res} against {noise}");
+                let (e, res) = (
+                    rel_rmse(&on, &reference, own),
+                    resolution(&on, &reference, own),
+                );
+                exact_below += usize::from(e < res);
+                if own {
+                    let m = metrics(&on, &reference);
+                    assert_eq!((m.rel_rmse, m.resolution), (e, res));
+                }
+            }
+            // 97.7 % each in expectation; 90 % of 200 fails with p < 1e-4.
+            assert!(
+                covered >= 180 && exact_below >= 180,
+                "{own}: {covered} {exact_below}"
+            );
+        }
+    }
 
     fn dir(name: &str) -> PathBuf {
         let d = std::env::temp_dir().join(format!("svk-job-{name}-{}", std::process::id()));

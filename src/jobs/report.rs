@@ -309,10 +309,15 @@ fn numeric(cell: &str) -> bool {
     cell.starts_with(|c: char| c.is_ascii_digit() || "+-−<—".contains(c))
 }
 
-/// A relative error: a percentage, or "< noise" where the noise-subtracted
-/// error is 0 (the images agree to within their own noise).
-pub fn err(v: Option<f64>) -> String {
+/// A noise-subtracted relative error of resolution `resolution`
+/// ([`super::render::resolution`]): a percentage where it is resolved,
+/// else "< x" with x its upper bound ([`super::render::error_bound`]);
+/// "< noise" for an error of 0 without a resolution.
+pub fn err(v: Option<f64>, resolution: f64) -> String {
     match v {
+        Some(e) if e.is_finite() && e < resolution => {
+            format!("< {}", pct(Some(super::render::error_bound(e, resolution))))
+        }
         Some(0.0) => "< noise".into(),
         v => pct(v),
     }
