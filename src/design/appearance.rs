@@ -1252,60 +1252,47 @@ mod tests {
             let alpha = noise(nx * ny, 3);
             let anchor = m.anchor(&alpha);
             assert!(anchor.bright.is_empty(), "no albedo on the ramp");
-            let label = format!("{method:?} {light:?} {space:?} b {blur}");
-            assert_exact_gradient(&m, &alpha, &anchor, &label);
-        }
-    }
-
-    /// The gradient of Σ g·M at `alpha` for fixed weights g: the same bits
-    /// when the released buffers are reused, and the adjoint equal to
-    /// central differences at five texels (1e-6 of its largest entry).
-    /// Returns M.
-    fn assert_exact_gradient(
-        m: &Appearance,
-        alpha: &[f64],
-        anchor: &Anchor,
-        label: &str,
-    ) -> Vec<f64> {
-        let n = alpha.len();
-        let g: Vec<f64> = noise(n, 4).iter().map(|v| v - 0.6).collect();
-        let f = |a: &[f64]| -> f64 {
-            m.appearance(a, anchor)
+            let g = noise(nx * ny, 4)
                 .iter()
-                .zip(&g)
-                .map(|(x, y)| x * y)
-                .sum()
-        };
-        let lin = m.linearize(alpha, anchor);
-        let grad = m.gradient(&lin, anchor, &g);
-        // Evaluations that reuse the released buffers give the same bits.
-        m.release(lin);
-        let again = m.linearize(alpha, anchor);
-        assert_eq!(m.gradient(&again, anchor, &g), grad, "{label}: reuse");
-        assert_eq!(m.appearance(alpha, anchor), again.m, "{label}: reuse");
-        let scale = grad.iter().fold(0.0f64, |s, v| s.max(v.abs()));
-        assert!(scale > 0.0, "{label}: zero gradient");
-        for t in [0, 5, 31, 40, n - 1] {
-            // The basis table is linear between its nodes in √(1 − α):
-            // M has kinks there, which a wider step may straddle. A step
-            // that straddles one is retried ten times smaller.
-            let central = |h: f64| {
-                let (mut up, mut down) = (alpha.to_vec(), alpha.to_vec());
-                up[t] += h;
-                down[t] -= h;
-                (f(&up) - f(&down)) / (2.0 * h)
+                .map(|v| v - 0.6)
+                .collect::<Vec<_>>();
+            let f = |a: &[f64]| -> f64 {
+                m.appearance(a, &anchor)
+                    .iter()
+                    .zip(&g)
+                    .map(|(x, y)| x * y)
+                    .sum()
             };
-            let mut fd = central(1e-7);
-            if (fd - grad[t]).abs() > 1e-6 * scale {
-                fd = central(1e-8);
+            let lin = m.linearize(&alpha, &anchor);
+            let grad = m.gradient(&lin, &anchor, &g);
+            // Evaluations that reuse the released buffers give the same bits.
+            m.release(lin);
+            let again = m.linearize(&alpha, &anchor);
+            assert_eq!(m.gradient(&again, &anchor, &g), grad, "{method:?}: reuse");
+            assert_eq!(m.appearance(&alpha, &anchor), again.m, "{method:?}: reuse");
+            let scale = grad.iter().fold(0.0f64, |s, v| s.max(v.abs()));
+            assert!(scale > 0.0, "{method:?}: zero gradient");
+            for t in [0, 5, 31, 40, nx * ny - 1] {
+                // The basis table is linear between its nodes in √(1 − α):
+                // M has kinks there, which a wider step may straddle. A
+                // step that straddles one is retried ten times smaller.
+                let central = |h: f64| {
+                    let (mut up, mut down) = (alpha.clone(), alpha.clone());
+                    up[t] += h;
+                    down[t] -= h;
+                    (f(&up) - f(&down)) / (2.0 * h)
+                };
+                let mut fd = central(1e-7);
+                if (fd - grad[t]).abs() > 1e-6 * scale {
+                    fd = central(1e-8);
+                }
+                assert!(
+                    (fd - grad[t]).abs() <= 1e-6 * scale,
+                    "{method:?} {light:?} {space:?} b {blur} texel {t}: adjoint {} vs central difference {fd}",
+                    grad[t]
+                );
             }
-            assert!(
-                (fd - grad[t]).abs() <= 1e-6 * scale,
-                "{label} texel {t}: adjoint {} vs central difference {fd}",
-                grad[t]
-            );
         }
-        again.m
     }
 
     /// A bright map, its endpoint albedos on both sides of the regimes'
@@ -1336,15 +1323,40 @@ mod tests {
             on_ramp > 0 && none > 0 && full > 0,
             "{none} {on_ramp} {full}"
         );
-        let m_both = assert_exact_gradient(&m, &alpha, &anchor, "bright map");
-        // The same anchor without its bright weights: the darker regime
-        // alone.
-        let dark = Anchor {
-            bins: anchor.bins.clone(),
-            bright: Vec::new(),
+        let g: Vec<f64> = noise(nx * ny, 4).iter().map(|v| v - 0.6).collect();
+        let f = |a: &[f64]| -> f64 {
+            m.appearance(a, &anchor)
+                .iter()
+                .zip(&g)
+                .map(|(x, y)| x * y)
+                .sum()
         };
-        let other = m.appearance(&alpha, &dark);
-        let diff = m_both
+        let lin = m.linearize(&alpha, &anchor);
+        let grad = m.gradient(&lin, &anchor, &g);
+        let scale = grad.iter().fold(0.0f64, |s, v| s.max(v.abs()));
+        for t in [0, 5, 31, 40, nx * ny - 1] {
+            let central = |h: f64| {
+                let (mut up, mut down) = (alpha.clone(), alpha.clone());
+                up[t] += h;
+                down[t] -= h;
+                (f(&up) - f(&down)) / (2.0 * h)
+            };
+            let mut fd = central(1e-7);
+            if (fd - grad[t]).abs() > 1e-6 * scale {
+                fd = central(1e-8);
+            }
+            assert!(
+                (fd - grad[t]).abs() <= 1e-6 * scale,
+                "texel {t}: adjoint {} vs central difference {fd}",
+                grad[t]
+            );
+        }
+        let dark = model(Method::Learned, nx, ny, Illumination::Uniform, &q)
+            .with_split(AlbedoSpace::default(), SPACE_BLUR, Split::Gaussian)
+            .unwrap();
+        let other = dark.appearance(&alpha, &dark.anchor(&alpha));
+        let diff = lin
+            .m
             .iter()
             .zip(&other)
             .fold(0.0f64, |s, (a, b)| s.max((a - b).abs()));
