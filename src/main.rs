@@ -344,8 +344,8 @@ struct DesignArgs {
     #[arg(long, default_value_t = SPACE_BLUR)]
     space_blur: f64,
     /// Forward model learned: the kernel of that split, as in `render`
-    /// (under `regimes` the two regimes blended by the anchor map's
-    /// endpoint albedo).
+    /// (its darker regime's everywhere: below an endpoint albedo of 0.95,
+    /// where `render` uses it).
     #[arg(long, value_enum, default_value_t = Split::Regimes)]
     split: Split,
     /// Forward model learned: α_t under the interior vertices' kernel, as

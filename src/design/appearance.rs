@@ -26,10 +26,8 @@
 //!   and α_t the renderer's two-scale mean under the all-vertex kernel
 //!   ([`AlbedoSpace`]): α_t = φ⁻¹(⟨φ(ᾱ)⟩) + ⟨α − ᾱ⟩ with ᾱ = S ∗ α
 //!   ([`pyramid::blur_mixture`]), by default φ(α) = √(1 − α), b =
-//!   [`SPACE_BLUR`] and S the renderer's split kernel of [`Split`]: under
-//!   [`Split::Regimes`] the darker regime's (0.2·δ + 0.8·G_b) and the
-//!   bright one's (one flight), their α_t blended by [`bright_weight`] of
-//!   the anchor's (A_i + A_e)/2; in the linear space α_t = ⟨α⟩.
+//!   [`SPACE_BLUR`] and S the darker regime's split kernel of [`Split`]
+//!   (0.2·δ + 0.8·G_b) at every albedo; in the linear space α_t = ⟨α⟩.
 //!   Point albedos are the
 //!   texel under the point. The kernels' *shapes* are the meta-model's at
 //!   an **anchor** map A, held fixed while α varies: the vertex kernels at
@@ -43,7 +41,7 @@
 //!   anchor's first pass still under the all-vertex one.
 //!
 //! The Gaussian means read a [`BlurStack`] (one of α and, in a two-scale
-//! space, one of φ(ᾱ) and one of α − ᾱ per regime read); the gradient runs the reads
+//! space, one of φ(ᾱ) and one of α − ᾱ); the gradient runs the reads
 //! backwards into the stacks' adjoint buffers, then through their
 //! transposed stencils, and the two-scale parts through φ′(ᾱ) and the
 //! transposed blur ([`pyramid::blur_mixture_transpose`]). Sums are taken over a fixed number of pixel blocks
@@ -56,9 +54,7 @@ use crate::metamodel::basis::BasisModel;
 use crate::metamodel::kernel::{Gmm, interior_into};
 use crate::metamodel::meta::MetaModelFile;
 use crate::render::pyramid;
-use crate::render::svbssrdf::{
-    AlbedoSpace, BasisTable, Method, R_MIN, SPACE_BLUR, Split, bright_weight,
-};
+use crate::render::svbssrdf::{AlbedoSpace, BasisTable, Method, R_MIN, SPACE_BLUR, Split};
 use rayon::prelude::*;
 use std::f64::consts::PI;
 use std::sync::Arc;
@@ -188,20 +184,10 @@ impl Kernels {
 }
 
 /// The kernel bins of one channel's anchor: per (texel, offset), the bin of
-/// the vertex kernels and of the all-vertex kernel, and the bright regime's
-/// weight (empty where it is 0 everywhere).
+/// the vertex kernels and of the all-vertex kernel.
 #[derive(Clone, Debug, Default)]
 pub struct Anchor {
     bins: Vec<[u16; 2]>,
-    bright: Vec<f64>,
-}
-
-impl Anchor {
-    /// The bright regime's weight at (texel, offset) index `k`.
-    #[inline]
-    fn bright(&self, k: usize) -> f64 {
-        self.bright.get(k).copied().unwrap_or(0.0)
-    }
 }
 
 /// The appearance model of one texture grid ([module docs](self)).
@@ -226,33 +212,26 @@ pub struct Appearance {
     /// The split kernel (σ, weight) at unit density, the darker regime's
     /// of the renderer's [`Split`].
     split: Vec<(f64, f64)>,
-    /// The bright regime's split kernel ([`Split::Regimes`]), `None` under
-    /// one split.
-    bright_split: Option<Vec<(f64, f64)>>,
     /// The gradient's per-block buffers, kept between calls (fresh ones
     /// would be page-faulted in on every call).
     scratch: std::sync::Mutex<Vec<Part>>,
     /// Stacks and partial-derivative buffers of finished evaluations, for
     /// reuse ([`Self::release`]).
     spare_stacks: std::sync::Mutex<Vec<BlurStack>>,
-    spare_partials: std::sync::Mutex<Vec<Vec<[f64; 7]>>>,
+    spare_partials: std::sync::Mutex<Vec<Vec<[f64; 6]>>>,
 }
 
-/// One pixel block's share of a gradient: texel weights, node weights of
-/// the α stack, and of the φ(ᾱ) and α − ᾱ stacks of each regime (darker,
-/// bright).
-type Part = (Vec<f64>, Vec<f64>, [Vec<f64>; 4]);
+/// One pixel block's share of a gradient: texel weights, and node weights
+/// of the α, φ(ᾱ) and α − ᾱ stacks.
+type Part = (Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>);
 
 /// The blur stacks of one map (learned).
 #[derive(Debug)]
 struct Stacks {
     /// Of α: the vertex kernels' means, and α_t's in the linear space.
     alpha: BlurStack,
-    /// α_t's aggregands in a two-scale space (the darker regime's under
-    /// [`Split::Regimes`]).
+    /// α_t's aggregands in a two-scale space.
     two_scale: Option<TwoScale>,
-    /// The bright regime's, where the anchor reads it.
-    bright: Option<TwoScale>,
 }
 
 /// The two-scale parts of a map: ᾱ = S ∗ α, and stacks of φ(ᾱ) and α − ᾱ.
@@ -346,7 +325,6 @@ impl Appearance {
             space: AlbedoSpace::default(),
             space_blur: SPACE_BLUR,
             split: Split::default().components(SPACE_BLUR, false),
-            bright_split: bright_split(Split::default(), SPACE_BLUR),
             scratch: Default::default(),
             spare_stacks: Default::default(),
             spare_partials: Default::default(),
@@ -360,12 +338,11 @@ impl Appearance {
         self.with_split(space, blur, Split::default())
     }
 
-    /// [`Self::with_albedo_space`] with the split kernel of `split`
-    /// ([`Split::components`]). Under [`Split::Regimes`] (the renderer's
-    /// default) α_t blends the darker regime's two-scale mean with the
-    /// bright one's by [`bright_weight`] of the anchor's endpoint albedo
-    /// (A_i + A_e)/2, as the renderer does at the map's; the weight is held
-    /// with the kernel shapes, so M stays smooth and its gradient exact.
+    /// [`Self::with_albedo_space`] with the split kernel of `split`: its
+    /// darker regime's ([`Split::components`]) everywhere. The renderer's
+    /// default ([`Split::Regimes`]) changes to the one-flight kernel where
+    /// the endpoints' albedo passes 0.95; this model keeps one kernel, so
+    /// that its gradient stays that of one fixed linear split.
     pub fn with_split(mut self, space: AlbedoSpace, blur: f64, split: Split) -> Result<Self> {
         if !(blur.is_finite() && blur >= 0.0) {
             return Err(Error::param("space-blur", blur, "finite and >= 0 (MFP)"));
@@ -373,7 +350,6 @@ impl Appearance {
         self.space = space;
         self.space_blur = blur;
         self.split = split.components(blur, false);
-        self.bright_split = bright_split(split, blur);
         Ok(self)
     }
 
@@ -459,9 +435,8 @@ impl Appearance {
         }
     }
 
-    /// The stacks of map `alpha` (learned), built; the bright regime's
-    /// two-scale parts only if `bright` (some weight of the anchor is not 0).
-    fn stack(&self, alpha: &[f64], bright: bool) -> Option<Stacks> {
+    /// The stacks of map `alpha` (learned), built.
+    fn stack(&self, alpha: &[f64]) -> Option<Stacks> {
         let build = |values: &[f64]| {
             self.grid.as_ref().map(|g| {
                 let spare = self.spare_stacks.lock().expect("spare stacks").pop();
@@ -470,55 +445,37 @@ impl Appearance {
                 s
             })
         };
-        let two_scale = |split: &[(f64, f64)]| -> Option<TwoScale> {
-            let space = self.space;
-            let mean = pyramid::blur_mixture(&self.texel_grid(alpha.to_vec()), split, 1.0).values;
-            let phi: Vec<f64> = mean.iter().map(|&m| space.forward(m)).collect();
-            let residual: Vec<f64> = alpha.iter().zip(&mean).map(|(a, m)| a - m).collect();
-            let (phi, residual) = rayon::join(|| build(&phi), || build(&residual));
-            Some(TwoScale {
-                phi: phi?,
-                residual: residual?,
-                mean,
-            })
-        };
-        let (dark, bright) = match (self.space, &self.bright_split) {
-            (AlbedoSpace::Linear, _) => (None, None),
-            (_, Some(b)) if bright => {
-                let (d, b) = rayon::join(|| two_scale(&self.split), || two_scale(b));
-                (Some(d?), Some(b?))
+        let two_scale = match self.space {
+            AlbedoSpace::Linear => None,
+            space => {
+                let mean =
+                    pyramid::blur_mixture(&self.texel_grid(alpha.to_vec()), &self.split, 1.0)
+                        .values;
+                let phi: Vec<f64> = mean.iter().map(|&m| space.forward(m)).collect();
+                let residual: Vec<f64> = alpha.iter().zip(&mean).map(|(a, m)| a - m).collect();
+                let (phi, residual) = rayon::join(|| build(&phi), || build(&residual));
+                Some(TwoScale {
+                    phi: phi?,
+                    residual: residual?,
+                    mean,
+                })
             }
-            _ => (Some(two_scale(&self.split)?), None),
         };
         Some(Stacks {
             alpha: build(alpha)?,
-            two_scale: dark,
-            bright,
+            two_scale,
         })
     }
 
-    /// α_t under the planned all-vertex `reads` with the bright regime's
-    /// weight `w`, and the means y of φ(ᾱ) of the darker and the bright
-    /// regime (0 where not read: the linear space, or a weight of 0 or 1).
+    /// α_t under the planned all-vertex `reads`, and the mean y of φ(ᾱ)
+    /// (0 in the linear space).
     #[inline]
-    fn total(&self, stacks: &Stacks, xe: [f64; 2], reads: &[Read], w: f64) -> (f64, [f64; 2]) {
-        let regime = |t: &TwoScale| {
-            let (y, r) = mean_pair(&t.phi, &t.residual, xe, reads);
-            (self.space.inverse(y) + r, y)
-        };
-        match (&stacks.two_scale, &stacks.bright) {
-            (None, _) => (mean(&stacks.alpha, xe, reads), [0.0; 2]),
-            (Some(_), Some(b)) if w >= 1.0 => {
-                let (at, y) = regime(b);
-                (at, [0.0, y])
-            }
-            (Some(d), Some(b)) if w > 0.0 => {
-                let ((lo, y0), (hi, y1)) = (regime(d), regime(b));
-                (lo + w * (hi - lo), [y0, y1])
-            }
-            (Some(d), _) => {
-                let (at, y) = regime(d);
-                (at, [y, 0.0])
+    fn total(&self, stacks: &Stacks, xe: [f64; 2], reads: &[Read]) -> (f64, f64) {
+        match &stacks.two_scale {
+            None => (mean(&stacks.alpha, xe, reads), 0.0),
+            Some(t) => {
+                let (y, r) = mean_pair(&t.phi, &t.residual, xe, reads);
+                (self.space.inverse(y) + r, y)
             }
         }
     }
@@ -526,46 +483,24 @@ impl Appearance {
     /// The kernel bins of anchor map `a` (learned; empty otherwise).
     pub fn anchor(&self, a: &[f64]) -> Anchor {
         assert_eq!(a.len(), self.len(), "anchor shape");
-        let Some(k) = &self.kernels else {
+        let (Some(k), Some(stack)) = (&self.kernels, self.stack(a)) else {
             return Anchor::default();
         };
-        // The endpoints' albedo per (texel, offset), and the bright
-        // regime's weight there.
-        let a0: Vec<f64> = (0..self.len())
+        let bins = (0..self.len())
             .into_par_iter()
             .flat_map_iter(|e| {
                 let xe = self.centre(e);
-                self.offsets.iter().map(move |off| {
+                let stack = &stack;
+                self.offsets.iter().enumerate().map(move |(o, off)| {
                     let xi = [xe[0] + off.delta[0], xe[1] + off.delta[1]];
-                    0.5 * (a[self.texel_of(xi)] + a[e])
+                    let b0 = k.bin(0.5 * (a[self.texel_of(xi)] + a[e]));
+                    let plain = k.first_pass.as_ref().unwrap_or(&k.all);
+                    let t = self.total(stack, xe, plain.get(o, b0)).0;
+                    [b0, k.bin(t)]
                 })
             })
             .collect();
-        let mut bright = Vec::new();
-        if self.bright_split.is_some() && self.space != AlbedoSpace::Linear {
-            bright = a0.iter().map(|&v| bright_weight(v)).collect();
-            if bright.iter().all(|&w| w == 0.0) {
-                bright.clear();
-            }
-        }
-        let Some(stack) = self.stack(a, !bright.is_empty()) else {
-            return Anchor::default();
-        };
-        let n_k = self.offsets.len();
-        let plain = k.first_pass.as_ref().unwrap_or(&k.all);
-        let bins = a0
-            .par_iter()
-            .enumerate()
-            .map(|(i, &v)| {
-                let (e, o) = (i / n_k, i % n_k);
-                let b0 = k.bin(v);
-                let w = bright.get(i).copied().unwrap_or(0.0);
-                let t = self.total(&stack, self.centre(e), plain.get(o, b0), w).0;
-                [b0, k.bin(t)]
-            })
-            .collect();
-        self.keep_stacks(Some(stack));
-        Anchor { bins, bright }
+        Anchor { bins }
     }
 
     /// The whole problem of Σ_e g_e·M_e at map `alpha` for an independent
@@ -623,13 +558,7 @@ impl Appearance {
                 Illumination::Disk(r) => serde_json::json!({"kind": "disk", "radius": r}),
             },
             "r_min": R_MIN,
-            "space": {
-                "kind": self.space.name(),
-                "blur": self.space_blur,
-                "split": self.split,
-                "bright_split": self.bright_split,
-            },
-            "bright": anchor.bright,
+            "space": {"kind": self.space.name(), "blur": self.space_blur},
             "basis": {
                 "degree": basis.degree,
                 "ln_a": basis.ln_a,
@@ -662,7 +591,7 @@ impl Appearance {
     /// `factorized`).
     pub fn appearance(&self, alpha: &[f64], anchor: &Anchor) -> Vec<f64> {
         assert_eq!(alpha.len(), self.len(), "map shape");
-        let stack = self.stack(alpha, !anchor.bright.is_empty());
+        let stack = self.stack(alpha);
         let mut m = vec![0.0; self.len()];
         m.par_chunks_mut(self.nx)
             .enumerate()
@@ -685,7 +614,7 @@ impl Appearance {
         let Some(s) = stacks else { return };
         let mut spare = self.spare_stacks.lock().expect("spare stacks");
         spare.push(s.alpha);
-        for t in [s.two_scale, s.bright].into_iter().flatten() {
+        if let Some(t) = s.two_scale {
             spare.extend([t.phi, t.residual]);
         }
     }
@@ -693,12 +622,12 @@ impl Appearance {
     /// M of map `alpha` with what its gradient needs ([`Self::gradient`]).
     pub fn linearize(&self, alpha: &[f64], anchor: &Anchor) -> Linearization {
         assert_eq!(alpha.len(), self.len(), "map shape");
-        let stack = self.stack(alpha, !anchor.bright.is_empty());
+        let stack = self.stack(alpha);
         let n_k = self.offsets.len();
         let spare = self.spare_partials.lock().expect("spare partials").pop();
         let mut partials = spare.unwrap_or_default();
         partials.clear();
-        partials.resize(self.len() * n_k, [0.0; 7]);
+        partials.resize(self.len() * n_k, [0.0; 6]);
         let mut m = vec![0.0; self.len()];
         m.par_chunks_mut(self.nx)
             .zip(partials.par_chunks_mut(self.nx * n_k))
@@ -716,9 +645,7 @@ impl Appearance {
         let stack = lin.stack.as_ref();
         let nodes_len = stack.map_or(0, |s| s.alpha.len());
         let two_scale = stack.is_some_and(|s| s.two_scale.is_some());
-        let bright = stack.is_some_and(|s| s.bright.is_some());
         let two_len = if two_scale { nodes_len } else { 0 };
-        let bright_len = if bright { nodes_len } else { 0 };
         let per = n.div_ceil(BLOCKS);
         let mut pool = std::mem::take(&mut *self.scratch.lock().expect("scratch"));
         pool.resize_with(BLOCKS, Default::default);
@@ -726,16 +653,16 @@ impl Appearance {
             .into_par_iter()
             .enumerate()
             .map(|(block, part)| {
-                let (mut texels, mut nodes, mut regimes) = part;
-                let [lens_d, lens_b] = [two_len, bright_len];
-                for (v, len) in [(&mut texels, n), (&mut nodes, nodes_len)]
-                    .into_iter()
-                    .chain(regimes.iter_mut().zip([lens_d, lens_d, lens_b, lens_b]))
-                {
+                let (mut texels, mut nodes, mut nodes_phi, mut nodes_res) = part;
+                for (v, len) in [
+                    (&mut texels, n),
+                    (&mut nodes, nodes_len),
+                    (&mut nodes_phi, two_len),
+                    (&mut nodes_res, two_len),
+                ] {
                     v.clear();
                     v.resize(len, 0.0);
                 }
-                let [phi_d, res_d, phi_b, res_b] = &mut regimes;
                 // Per texel row, offsets outside ([`Self::row`]).
                 let (lo, hi) = (block * per, ((block + 1) * per).min(n));
                 for row in lo / self.nx..hi.div_ceil(self.nx) {
@@ -746,7 +673,7 @@ impl Appearance {
                                 continue;
                             }
                             let xe = self.centre(e);
-                            let [c_i, c_e, c_t, c_le, c_li, c_y, c_yb] = lin.partials[e * n_k + o];
+                            let [c_i, c_e, c_t, c_le, c_li, c_y] = lin.partials[e * n_k + o];
                             let w = g[e];
                             let xi = [xe[0] + off.delta[0], xe[1] + off.delta[1]];
                             texels[self.texel_of(xi)] += w * c_i;
@@ -755,23 +682,14 @@ impl Appearance {
                                 let [b0, b1] = anchor.bins[e * n_k + o];
                                 let all = k.all.get(o, b1);
                                 if c_t != 0.0 {
-                                    // α_t = (1 − u)·(dark) + u·(bright).
-                                    let u = anchor.bright(e * n_k + o);
-                                    match (&stack.two_scale, &stack.bright) {
-                                        (None, _) => {
+                                    match &stack.two_scale {
+                                        None => {
                                             scatter(&stack.alpha, xe, all, [w * c_t], [&mut nodes])
                                         }
-                                        (Some(t), b) => {
-                                            if u < 1.0 {
-                                                let g = [w * c_y, w * c_t * (1.0 - u)];
-                                                let nodes = [&mut phi_d[..], &mut res_d[..]];
-                                                scatter(&t.phi, xe, all, g, nodes);
-                                            }
-                                            if let Some(b) = b.as_ref().filter(|_| u > 0.0) {
-                                                let g = [w * c_yb, w * c_t * u];
-                                                let nodes = [&mut phi_b[..], &mut res_b[..]];
-                                                scatter(&b.phi, xe, all, g, nodes);
-                                            }
+                                        Some(t) => {
+                                            let g = [w * c_y, w * c_t];
+                                            let nodes = [&mut nodes_phi[..], &mut nodes_res[..]];
+                                            scatter(&t.phi, xe, all, g, nodes);
                                         }
                                     }
                                 }
@@ -784,7 +702,7 @@ impl Appearance {
                         }
                     }
                 }
-                (texels, nodes, regimes)
+                (texels, nodes, nodes_phi, nodes_res)
             })
             .collect();
         // Summed into the first block's buffers in block order per element
@@ -803,32 +721,29 @@ impl Appearance {
                     }
                 });
         };
-        let (texels, nodes, regimes) = &mut head[0];
+        let (texels, nodes, nodes_phi, nodes_res) = &mut head[0];
         add(texels, &|p| &p.0);
         add(nodes, &|p| &p.1);
-        for (i, buffer) in regimes.iter_mut().enumerate() {
-            add(buffer, &|p| &p.2[i]);
-        }
+        add(nodes_phi, &|p| &p.2);
+        add(nodes_res, &|p| &p.3);
         let mut texels = std::mem::take(texels);
         if let Some(s) = stack {
             s.alpha.adjoint(nodes, &mut texels);
-            let [phi_d, res_d, phi_b, res_b] = regimes;
-            let splits = [Some(&self.split), self.bright_split.as_ref()];
-            let parts = [(&s.two_scale, phi_d, res_d), (&s.bright, phi_b, res_b)];
-            for ((t, nodes_phi, nodes_res), split) in parts.into_iter().zip(splits) {
-                let (Some(t), Some(split)) = (t, split) else {
-                    continue;
-                };
-                // α_t's parts: ∂/∂α = g_r + Sᵀ(φ′(ᾱ)·g_φ − g_r), with g_φ and
-                // g_r the texel gradients through the φ(ᾱ) and α − ᾱ stacks.
+            if let Some(t) = &s.two_scale {
+                // α_t's parts: ∂/∂α = g_r + Bᵀ(φ′(ᾱ)·g_φ − g_r), with g_φ and g_r
+                // the texel gradients through the φ(ᾱ) and α − ᾱ stacks.
                 let (mut g_phi, mut g_res) = (vec![0.0; n], vec![0.0; n]);
                 t.phi.adjoint(nodes_phi, &mut g_phi);
                 t.residual.adjoint(nodes_res, &mut g_res);
                 let h: Vec<f64> = (0..n)
                     .map(|k| self.space.forward_derivative(t.mean[k]) * g_phi[k] - g_res[k])
                     .collect();
-                let back =
-                    pyramid::blur_mixture_transpose(&self.texel_grid(Vec::new()), split, 1.0, &h);
+                let back = pyramid::blur_mixture_transpose(
+                    &self.texel_grid(Vec::new()),
+                    &self.split,
+                    1.0,
+                    &h,
+                );
                 for k in 0..n {
                     texels[k] += g_res[k] + back[k];
                 }
@@ -853,7 +768,7 @@ impl Appearance {
         anchor: &Anchor,
         row: usize,
         m: &mut [f64],
-        mut partials: Option<&mut [[f64; 7]]>,
+        mut partials: Option<&mut [[f64; 6]]>,
     ) {
         let n_k = self.offsets.len();
         m.fill(0.0);
@@ -887,7 +802,7 @@ impl Appearance {
         o: usize,
         xe: [f64; 2],
         xi: [f64; 2],
-    ) -> (f64, [f64; 7]) {
+    ) -> (f64, [f64; 6]) {
         let off = &self.offsets[o];
         let ae = alpha[e];
         let b = &*self.basis;
@@ -902,21 +817,20 @@ impl Appearance {
         match self.method {
             Method::Point => {
                 let (s, ds) = profile(ae);
-                (s, [0.0, ds, 0.0, 0.0, 0.0, 0.0, 0.0])
+                (s, [0.0, ds, 0.0, 0.0, 0.0, 0.0])
             }
             Method::Factorized => {
                 let ((ri, dri), (re, dre)) = (profile(ai), profile(ae));
                 let s = (ri * re).max(0.0).sqrt();
                 let h = if s > 0.0 { 0.5 / s } else { 0.0 };
-                (s, [h * dri * re, h * ri * dre, 0.0, 0.0, 0.0, 0.0, 0.0])
+                (s, [h * dri * re, h * ri * dre, 0.0, 0.0, 0.0, 0.0])
             }
             _ => {
                 let (Some(k), Some(stack)) = (&self.kernels, stack) else {
                     unreachable!("learned is built with its kernels")
                 };
                 let [b0, b1] = anchor.bins[e * n_k + o];
-                let u = anchor.bright(e * n_k + o);
-                let (at, [y, yb]) = self.total(stack, xe, k.all.get(o, b1), u);
+                let (at, y) = self.total(stack, xe, k.all.get(o, b1));
                 let le = mean(&stack.alpha, xe, k.last.get(o, b0));
                 let first = k.first.as_ref().map(|f| f.get(o, b0));
                 let li = first.map_or(ai, |f| mean(&stack.alpha, xe, f));
@@ -929,19 +843,11 @@ impl Appearance {
                     Some(_) => (off.single, le * mm),
                 };
                 let c_t = if at == t { li * le * dm } else { 0.0 };
-                // Through each regime's mean of φ(ᾱ), by its share of α_t.
-                let c_y = c_t * (1.0 - u) * self.space.inverse_derivative(y);
-                let c_yb = c_t * u * self.space.inverse_derivative(yb);
-                (s, [c_i, 0.0, c_t, li * mm, c_li, c_y, c_yb])
+                let c_y = c_t * self.space.inverse_derivative(y);
+                (s, [c_i, 0.0, c_t, li * mm, c_li, c_y])
             }
         }
     }
-}
-
-/// The bright regime's split kernel of `split` at scale `blur`: the
-/// one-flight kernel under [`Split::Regimes`], none under one split.
-fn bright_split(split: Split, blur: f64) -> Option<Vec<(f64, f64)>> {
-    (split == Split::Regimes).then(|| split.components(blur, true))
 }
 
 /// Nodes of [`Normalisation`], uniform in y = √(1 − α).
@@ -1014,7 +920,7 @@ impl Normalisation {
 pub struct Linearization {
     /// M per texel.
     pub m: Vec<f64>,
-    partials: Vec<[f64; 7]>,
+    partials: Vec<[f64; 6]>,
     stack: Option<Stacks>,
 }
 
@@ -1251,7 +1157,6 @@ mod tests {
             }
             let alpha = noise(nx * ny, 3);
             let anchor = m.anchor(&alpha);
-            assert!(anchor.bright.is_empty(), "no albedo on the ramp");
             let g = noise(nx * ny, 4)
                 .iter()
                 .map(|v| v - 0.6)
@@ -1293,74 +1198,6 @@ mod tests {
                 );
             }
         }
-    }
-
-    /// A bright map, its endpoint albedos on both sides of the regimes'
-    /// ramp and on it: M and its gradient blend the two regimes' α_t, the
-    /// gradient exact (central differences), and the blend differs from
-    /// the darker regime alone.
-    #[test]
-    fn the_bright_regime_blends_with_an_exact_gradient() {
-        let (nx, ny) = (9, 7);
-        let q = Quadrature {
-            rings: 6,
-            angles: 3,
-        };
-        let m = model(Method::Learned, nx, ny, Illumination::Uniform, &q);
-        let mut rng = PathRng::new(5, 0);
-        let alpha: Vec<f64> = (0..nx * ny).map(|_| 0.92 + 0.075 * rng.uniform()).collect();
-        let anchor = m.anchor(&alpha);
-        let on_ramp = anchor
-            .bright
-            .iter()
-            .filter(|&&u| u > 0.0 && u < 1.0)
-            .count();
-        let (none, full) = (
-            anchor.bright.iter().filter(|&&u| u == 0.0).count(),
-            anchor.bright.iter().filter(|&&u| u == 1.0).count(),
-        );
-        assert!(
-            on_ramp > 0 && none > 0 && full > 0,
-            "{none} {on_ramp} {full}"
-        );
-        let g: Vec<f64> = noise(nx * ny, 4).iter().map(|v| v - 0.6).collect();
-        let f = |a: &[f64]| -> f64 {
-            m.appearance(a, &anchor)
-                .iter()
-                .zip(&g)
-                .map(|(x, y)| x * y)
-                .sum()
-        };
-        let lin = m.linearize(&alpha, &anchor);
-        let grad = m.gradient(&lin, &anchor, &g);
-        let scale = grad.iter().fold(0.0f64, |s, v| s.max(v.abs()));
-        for t in [0, 5, 31, 40, nx * ny - 1] {
-            let central = |h: f64| {
-                let (mut up, mut down) = (alpha.clone(), alpha.clone());
-                up[t] += h;
-                down[t] -= h;
-                (f(&up) - f(&down)) / (2.0 * h)
-            };
-            let mut fd = central(1e-7);
-            if (fd - grad[t]).abs() > 1e-6 * scale {
-                fd = central(1e-8);
-            }
-            assert!(
-                (fd - grad[t]).abs() <= 1e-6 * scale,
-                "texel {t}: adjoint {} vs central difference {fd}",
-                grad[t]
-            );
-        }
-        let dark = model(Method::Learned, nx, ny, Illumination::Uniform, &q)
-            .with_split(AlbedoSpace::default(), SPACE_BLUR, Split::Gaussian)
-            .unwrap();
-        let other = dark.appearance(&alpha, &dark.anchor(&alpha));
-        let diff = lin
-            .m
-            .iter()
-            .zip(&other)
-            .fold(0.0f64, |s, (a, b)| s.max((a - b).abs()));
-        assert!(diff > 1e-5, "the regimes change nothing: {diff}");
     }
 
     #[test]

@@ -76,8 +76,7 @@ pub struct Settings {
     pub albedo_space: AlbedoSpace,
     /// The scale b (MFP) that splits α_t's fine from its coarse part.
     pub space_blur: f64,
-    /// The kernel of that split ([`Split`]; under `regimes` both regimes,
-    /// blended by the anchor's endpoint albedo).
+    /// The kernel of that split (its darker regime's, [`Split`]).
     pub split: Split,
     /// α_t under the interior vertices' kernel (learned; the renderer's
     /// `interior` variant).
