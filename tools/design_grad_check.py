@@ -37,8 +37,9 @@ anchor selects per (texel, offset). This script re-implements, in float64:
 * alpha_t in the exported space: linear, the mean of alpha under the
   all-vertex reads; otherwise two-scale, phi^-1(mean of phi(abar)) + mean
   of (alpha - abar), with abar the map (edge texels extended) convolved
-  with a Gaussian of width b at each texel centre, integrated over each
-  texel exactly (no window).
+  with the exported split kernel, a mixture of Gaussians (sigma, weight;
+  sigma = 0 the texel itself), each integrated over each texel exactly at
+  each texel centre (no window).
 
 It checks M against the export (1e-8 relative to max |M|) and the
 gradient of F = sum_e g_e M_e from jax.grad against the exported adjoint
@@ -213,18 +214,18 @@ def check(p):
     levels = stack_levels(p) if method == "learned" else None
     space = p.get("space", {"kind": "linear", "blur": 0.0})
     phi, phi_inv = SPACES[space["kind"]]
-    if space["kind"] != "linear" and space["blur"] > 0:
-        cx = -0.5 * nx * tau + tau * (np.arange(nx) + 0.5)
-        cu = -0.5 * ny * tau + tau * (np.arange(ny) + 0.5)
-        bx = gaussian_weights(nx, tau, space["blur"], jnp.asarray(cx))
-        bu = gaussian_weights(ny, tau, space["blur"], jnp.asarray(cu))
+    cx = -0.5 * nx * tau + tau * (np.arange(nx) + 0.5)
+    cu = -0.5 * ny * tau + tau * (np.arange(ny) + 0.5)
+    # The split kernel: (sigma, weight) pairs, sigma = 0 the texel itself.
+    split = [
+        (w, None if sigma == 0 else (
+            gaussian_weights(ny, tau, sigma, jnp.asarray(cu)),
+            gaussian_weights(nx, tau, sigma, jnp.asarray(cx))))
+        for sigma, w in space.get("split", [[space["blur"], 1.0]])
+    ]
 
-        def local_mean(a):
-            return bu @ a @ bx.T
-    else:
-
-        def local_mean(a):
-            return a
+    def local_mean(a):
+        return sum(w * (a if b is None else b[0] @ a @ b[1].T) for w, b in split)
 
     def means(vals, rows):
         """Per (texel, offset) sum of share * read over the exported reads."""

@@ -558,7 +558,7 @@ impl Appearance {
                 Illumination::Disk(r) => serde_json::json!({"kind": "disk", "radius": r}),
             },
             "r_min": R_MIN,
-            "space": {"kind": self.space.name(), "blur": self.space_blur},
+            "space": {"kind": self.space.name(), "blur": self.space_blur, "split": self.split},
             "basis": {
                 "degree": basis.degree,
                 "ln_a": basis.ln_a,
