@@ -1228,6 +1228,7 @@ pub fn verdict(doc: &CompareDoc) -> String {
     use super::report::{err, pct};
     // (name, rel RMSE, bias, resolution): the methods within the noise
     // first, then by error.
+    let within = |m: &(&str, f64, f64, f64)| m.1 < m.3 || m.1 == 0.0;
     let best = |pass: &super::render::PassDoc| {
         let mut ranked: Vec<(&str, f64, f64, f64)> = pass
             .methods
@@ -1242,11 +1243,9 @@ pub fn verdict(doc: &CompareDoc) -> String {
                 ))
             })
             .collect();
-        let within = |m: &(&str, f64, f64, f64)| m.1 < m.3 || m.1 == 0.0;
         ranked.sort_by(|a, b| within(b).cmp(&within(a)).then(a.1.total_cmp(&b.1)));
         ranked
     };
-    let within = |m: &(&str, f64, f64, f64)| m.1 < m.3 || m.1 == 0.0;
     let passes = &doc.render.passes;
     let ranked: Vec<_> = passes.iter().map(best).collect();
     let mut text = match ranked.first() {
