@@ -449,6 +449,8 @@ fn hard_cases_give_finite_images() {
                 },
                 space_blur: if on { 0.0 } else { 0.5 },
                 split: if on { Split::Regimes } else { Split::Gaussian },
+                // Read in the transport space only.
+                coarse_variance: 0.0,
                 density_law: if on {
                     DensityLaw::Kernel
                 } else {

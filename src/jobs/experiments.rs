@@ -11,6 +11,8 @@
 //! | density | `density`, `features` | learned, manual: density-scaled vs plain |
 //! | vertex | all but `features` | learned: first/last-vertex kernels vs point albedos |
 //! | two-pass | `stripes`, `checker`, `density` | learned: one pass vs α₀ = α_t |
+//! | interior | all | learned: α_t under the interior kernel blended in, nowhere, everywhere |
+//! | coarse variance | all | learned: the two-scale mean vs its coarse-variance term ([`COARSE_VARIANCE`]) |
 //! | sampling | `stripes`, `checker`, `density` | learned: uniform, importance, MIS |
 //! | models | `stripes`, `checker` | learned with each `--models` file (K, degrees) |
 //! | bases | `stripes`, `checker` | learned with each `--bases` file (exponential terms) |
@@ -28,7 +30,7 @@ use crate::metamodel::meta::MetaModelFile;
 use crate::provenance::Provenance;
 use crate::render::estimator::{Image, Sampling};
 use crate::render::scene::Scene;
-use crate::render::svbssrdf::{InteriorKernel, Method, Variant};
+use crate::render::svbssrdf::{COARSE_VARIANCE, InteriorKernel, Method, Variant};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -194,6 +196,9 @@ fn configs(name: &str, settings: &Settings) -> Vec<Config> {
     }));
     c.push(with(Method::Learned, &|k| {
         k.variant.interior = InteriorKernel::Always
+    }));
+    c.push(with(Method::Learned, &|k| {
+        k.variant.coarse_variance = COARSE_VARIANCE
     }));
     if matches!(name, "stripes" | "checker" | "density") {
         // Manual's kernel does not depend on α₀: a second pass changes nothing.
@@ -481,7 +486,12 @@ fn sections(rows: &[Row]) -> (Vec<Block>, Option<(usize, Vec<crate::jobs::plot::
         "learned is below manual on {learned_wins} of {n} scenes/passes; manual is below the \
          best of point/factorized/line/ellipse on {manual_wins} of {n}."
     )));
-    let sections: [(&str, &[Method], &str, [&str; 2]); 5] = [
+    let coarse = Variant {
+        coarse_variance: COARSE_VARIANCE,
+        ..Variant::default()
+    }
+    .tag();
+    let sections: [(&str, &[Method], &str, [&str; 2]); 6] = [
         (
             "Density-scaled vs plain aggregation",
             &[Method::Manual, Method::Learned],
@@ -513,6 +523,12 @@ fn sections(rows: &[Row]) -> (Vec<Block>, Option<(usize, Vec<crate::jobs::plot::
             &[Method::Learned],
             "+interior",
             ["blended", "interior"],
+        ),
+        (
+            "The two-scale mean (the default) vs its coarse-variance term, c = 0.25 (learned)",
+            &[Method::Learned],
+            &coarse,
+            ["two-scale", "coarse variance"],
         ),
     ];
     for (title, ms, variant, names) in sections {
