@@ -2267,21 +2267,17 @@ mod tests {
                 }
             })
             .collect();
-        let eval = |values: &[f64], c: f64, density: Density, xi: [f64; 2], xe: [f64; 2]| {
-            let map = TexelMap::new(nx, ny, tau, values.to_vec()).unwrap();
+        let build = |values: &[f64], c: f64, density: Density| {
             let variant = Variant {
                 coarse_variance: c,
                 ..Variant::default()
             };
-            let sv = SvBssrdf::new(
-                Method::Learned,
-                variant,
-                t.clone(),
-                Some(meta.clone()),
-                vec![map],
-                density,
-            )
-            .unwrap();
+            let map = TexelMap::new(nx, ny, tau, values.to_vec()).unwrap();
+            let (t, meta) = (t.clone(), Some(meta.clone()));
+            SvBssrdf::new(Method::Learned, variant, t, meta, vec![map], density)
+        };
+        let eval = |values: &[f64], c: f64, density: Density, xi: [f64; 2], xe: [f64; 2]| {
+            let sv = build(values, c, density).unwrap();
             sv.eval(0, xi, xe, &mut Scratch::default())
         };
         for density in [Density::Constant(1.0), Density::Constant(2.0)] {
@@ -2321,19 +2317,7 @@ mod tests {
             );
         }
         // Outside [0, 0.5]: a clear error.
-        let map = TexelMap::new(2, 2, 0.5, vec![0.5; 4]).unwrap();
-        let bad = Variant {
-            coarse_variance: 0.7,
-            ..Variant::default()
-        };
-        let sv = SvBssrdf::new(
-            Method::Learned,
-            bad,
-            t.clone(),
-            Some(meta),
-            vec![map],
-            Density::Constant(1.0),
-        );
+        let sv = build(&step, 0.7, Density::Constant(1.0));
         assert!(sv.is_err_and(|e| e.to_string().contains("coarse_variance")));
     }
 
