@@ -1588,7 +1588,9 @@ impl SvBssrdf {
     /// [`Self::means`] of the two-scale aggregands `m` under `kernel`, and
     /// V, the variance of y = φ(ᾱ_L) within each component averaged over
     /// the components ([`COARSE_VARIANCE`]; `coarse` holds y and y²). At a
-    /// constant density each component is one query of four pyramids.
+    /// constant density each component is one query of four pyramids; with
+    /// a density map the variance is read per component (density-weighted
+    /// unless `plain`) beside [`Self::means`].
     #[inline]
     fn coarse_means(
         &self,
@@ -1599,22 +1601,41 @@ impl SvBssrdf {
         frame: &Frame,
         kernel: &Gmm,
     ) -> ([f64; 2], f64, f64) {
-        let weighted = matches!(self.material.density, Density::Map(_)) && !self.variant.plain;
+        // Σ w·max(Var, 0) / Σ w over the components with finite parts.
         let (mut wsum, mut var) = (0.0, 0.0);
-        let mut sums = [0.0; 2];
-        for comp in &kernel.components {
-            let mu = frame.place(comp);
-            let (w, v) = match (&p.rho, weighted) {
-                (Some(rho), true) => {
-                    let ([r, a, b], _) = GaussianPyramid::integrate_n(
-                        [rho, &y1.rho_alpha[c], &y2.rho_alpha[c]],
-                        mu,
-                        comp.sigma,
-                    );
-                    let mean = a / r;
-                    (comp.weight * r, b / r - mean * mean)
+        let mut add = |w: f64, v: f64| {
+            if w.is_finite() && v.is_finite() {
+                wsum += w;
+                var += w * v.max(0.0);
+            }
+        };
+        let (parts, rho_bar) = match &self.material.density {
+            Density::Map(_) => {
+                let rho = p.rho.as_ref().expect("a density map has its ρ pyramid");
+                for comp in &kernel.components {
+                    let mu = frame.place(comp);
+                    if self.variant.plain {
+                        let ([a, b], _) = GaussianPyramid::integrate_n(
+                            [&y1.alpha[c], &y2.alpha[c]],
+                            mu,
+                            comp.sigma,
+                        );
+                        add(comp.weight, b - a * a);
+                    } else {
+                        let ([r, a, b], _) = GaussianPyramid::integrate_n(
+                            [rho, &y1.rho_alpha[c], &y2.rho_alpha[c]],
+                            mu,
+                            comp.sigma,
+                        );
+                        let mean = a / r;
+                        add(comp.weight * r, b / r - mean * mean);
+                    }
                 }
-                _ => {
+                self.means(p, [&m.phi, &m.residual], c, frame, kernel)
+            }
+            Density::Constant(rho) => {
+                let (mut wtot, mut sums) = (0.0, [0.0; 2]);
+                for comp in &kernel.components {
                     let ([y, res, a, b], _) = GaussianPyramid::integrate_n(
                         [
                             &m.phi.alpha[c],
@@ -1622,29 +1643,19 @@ impl SvBssrdf {
                             &y1.alpha[c],
                             &y2.alpha[c],
                         ],
-                        mu,
+                        frame.place(comp),
                         comp.sigma,
                     );
+                    wtot += comp.weight;
                     sums[0] += comp.weight * y;
                     sums[1] += comp.weight * res;
-                    (comp.weight, b - a * a)
+                    add(comp.weight, b - a * a);
                 }
-            };
-            if w.is_finite() && v.is_finite() {
-                wsum += w;
-                var += w * v.max(0.0);
+                (sums.map(|s| s / wtot), *rho)
             }
-        }
-        let var = if wsum > 0.0 { var / wsum } else { 0.0 };
-        if weighted || p.rho.is_some() {
-            let (parts, rho_bar) = self.means(p, [&m.phi, &m.residual], c, frame, kernel);
-            return (parts, rho_bar, var);
-        }
-        let wtot: f64 = kernel.components.iter().map(|k| k.weight).sum();
-        let Density::Constant(rho) = self.material.density else {
-            unreachable!("a density map has its ρ pyramid")
         };
-        (sums.map(|s| s / wtot), rho, var)
+        let var = if wsum > 0.0 { var / wsum } else { 0.0 };
+        (parts, rho_bar, var)
     }
 
     /// α_t from [`Self::aggregate_parts`]'s two means.
@@ -2286,7 +2297,6 @@ mod tests {
                 let on = eval(values, COARSE_VARIANCE, density.clone(), xi, xe);
                 on / off
             };
-            // Beside the step, on the dark side and on the bright one.
             // Beside the step, on the dark side and on the bright one: S
             // grows, by less on the dark side, where single scattering
             // carries most of it (measured: 2.5e-4 and 1.3 % at ρ = 1).
