@@ -140,6 +140,10 @@ pub struct Cell {
 pub struct PlaneMoments {
     pub mean_t: f64,
     pub rms_s: f64,
+    /// Standard errors of `mean_t` and `rms_s` (MFP) for measured moments
+    /// whose tally has them ([`crate::forward::kernel::ClassTally::moment_errors`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub se: Option<[f64; 2]>,
 }
 
 impl PlaneMoments {
@@ -162,18 +166,24 @@ impl PlaneMoments {
         PlaneMoments {
             mean_t: t,
             rms_s: s2.sqrt(),
+            se: None,
         }
     }
 }
 
 impl Cell {
     /// The cell of a measured histogram, with its whole-plane moments
-    /// (t = d/2 + λu, |s| = λv).
+    /// (t = d/2 + λu, |s| = λv) and their standard errors where the tally
+    /// has them (rms s = λ√⟨v²⟩, so its error is λ·se(⟨v²⟩)/(2√⟨v²⟩)).
     pub fn measured(alpha: f64, h: NormalizedHistogram) -> Cell {
         let (d, l) = (h.d, h.lambda);
+        let v2 = h.mean_v2.max(0.0);
         let plane = PlaneMoments {
             mean_t: 0.5 * d + l * h.mean_u,
-            rms_s: l * h.mean_v2.max(0.0).sqrt(),
+            rms_s: l * v2.sqrt(),
+            se: h
+                .moment_errors
+                .map(|[u, v]| [l * u, l * v / (2.0 * v2.sqrt()).max(f64::MIN_POSITIVE)]),
         };
         let mut hist = fit_histogram(h);
         hist.plane = Some(PlaneTarget {

@@ -179,6 +179,19 @@ pub struct ClassTally {
     /// Σ w·u and Σ w·v² over the vertices, fixed point (2⁻¹⁶).
     pub sum_u_q: i128,
     pub sum_v2_q: u128,
+    /// For the moments' standard errors ([`ClassTally::moment_errors`]),
+    /// with S_u and S_v the path's Σu and Σv² over its vertices of this
+    /// class in fixed point (2⁻¹⁶) and n_c their count: Σ w²·S_u² and
+    /// Σ w²·S_u·n_c, Σ w²·S_v² and Σ w²·S_v·n_c (saturating). Absent (0)
+    /// in documents written without them.
+    #[serde(default)]
+    pub sq_u_q: u128,
+    #[serde(default)]
+    pub cross_u_q: i128,
+    #[serde(default)]
+    pub sq_v2_q: u128,
+    #[serde(default)]
+    pub cross_v2_q: u128,
 }
 
 impl ClassTally {
@@ -190,6 +203,10 @@ impl ClassTally {
             cross: vec![0; grid.bins() + 1],
             sum_u_q: 0,
             sum_v2_q: 0,
+            sq_u_q: 0,
+            cross_u_q: 0,
+            sq_v2_q: 0,
+            cross_v2_q: 0,
         }
     }
 
@@ -205,6 +222,10 @@ impl ClassTally {
         }
         self.sum_u_q += o.sum_u_q;
         self.sum_v2_q += o.sum_v2_q;
+        self.sq_u_q = self.sq_u_q.saturating_add(o.sq_u_q);
+        self.cross_u_q = self.cross_u_q.saturating_add(o.cross_u_q);
+        self.sq_v2_q = self.sq_v2_q.saturating_add(o.sq_v2_q);
+        self.cross_v2_q = self.cross_v2_q.saturating_add(o.cross_v2_q);
     }
 
     /// Adds one path of weight `w` whose vertices of this class fall in
@@ -229,6 +250,27 @@ impl ClassTally {
         self.sum_v2_q += w * (v * v * MOMENT_Q).round() as u128;
     }
 
+    /// Adds one path's sums for the moments' errors: `su` = Σu and `sv` =
+    /// Σv² over its `n` vertices of this class, weight `w`.
+    fn add_path_moments(&mut self, su: f64, sv: f64, n: u128, w: u128) {
+        let w2 = w.saturating_mul(w);
+        let su = (su * MOMENT_Q).round() as i128;
+        let sv = (sv * MOMENT_Q).round() as u128;
+        let w2s = i128::try_from(w2).unwrap_or(i128::MAX);
+        self.sq_u_q = self
+            .sq_u_q
+            .saturating_add(w2.saturating_mul(su.unsigned_abs().saturating_pow(2)));
+        self.cross_u_q = self
+            .cross_u_q
+            .saturating_add(w2s.saturating_mul(su).saturating_mul(n as i128));
+        self.sq_v2_q = self
+            .sq_v2_q
+            .saturating_add(w2.saturating_mul(sv.saturating_pow(2)));
+        self.cross_v2_q = self
+            .cross_v2_q
+            .saturating_add(w2.saturating_mul(sv).saturating_mul(n));
+    }
+
     /// Weighted vertices tallied (overflow included): Σ w·n_c.
     pub fn vertices(&self) -> u128 {
         self.count.iter().sum()
@@ -241,6 +283,28 @@ impl ClassTally {
             self.sum_u_q as f64 / MOMENT_Q / nv,
             self.sum_v2_q as f64 / MOMENT_Q / nv,
         )
+    }
+
+    /// Standard errors of [`Self::means`], `None` where the document has no
+    /// sums for them. Each mean is a ratio R = Σw·S/Σw·n_c over the paths
+    /// (S the path's Σu or Σv²); to first order (the delta method, as for
+    /// the bins) Var(R) ≈ Σw²(S − R·n_c)²/(Σw·n_c)², expanded in the
+    /// tallied sums. `total_sq` is Σw²·n_c².
+    pub fn moment_errors(&self, total_sq: f64) -> Option<(f64, f64)> {
+        if self.sq_v2_q == 0 {
+            return None;
+        }
+        let nv = (self.vertices() as f64).max(f64::MIN_POSITIVE);
+        let (mu, mv) = self.means();
+        let q = MOMENT_Q;
+        let se = |sq: f64, cross: f64, r: f64| {
+            let ez2 = sq / (q * q) - 2.0 * r * cross / q + r * r * total_sq;
+            ez2.max(0.0).sqrt() / nv
+        };
+        Some((
+            se(self.sq_u_q as f64, self.cross_u_q as f64, mu),
+            se(self.sq_v2_q as f64, self.cross_v2_q as f64, mv),
+        ))
     }
 }
 
@@ -312,13 +376,18 @@ impl CellTally {
         };
         bins.clear();
         let all = grid.for_class(VertexClass::All);
+        let (mut su, mut sv) = (0.0, 0.0);
         for p in vertices {
             let (u, v) = frame(*p);
             bins.push(all.index(u, v));
             self.classes[VertexClass::All.slot()].add_moment(u, v, w);
+            su += u;
+            sv += v * v;
         }
         bins.sort_unstable();
-        self.classes[VertexClass::All.slot()].add_path(bins, w);
+        let c = &mut self.classes[VertexClass::All.slot()];
+        c.add_path(bins, w);
+        c.add_path_moments(su, sv, n, w);
         for (class, p) in [
             (VertexClass::First, vertices[0]),
             (VertexClass::Last, vertices[vertices.len() - 1]),
@@ -327,6 +396,7 @@ impl CellTally {
             let c = &mut self.classes[class.slot()];
             c.add_path(&[grid.for_class(class).index(u, v)], w);
             c.add_moment(u, v, w);
+            c.add_path_moments(u, v * v, 1, w);
         }
     }
 
@@ -391,6 +461,7 @@ impl CellTally {
         }
         let (overflow, overflow_sigma, overflow_count_sigma) = stat(bins);
         let (mean_u, mean_v2) = cl.means();
+        let moment_errors = cl.moment_errors(total_sq).map(|(u, v)| [u, v]);
         NormalizedHistogram {
             albedo,
             d,
@@ -409,6 +480,7 @@ impl CellTally {
             mean_vertices,
             mean_u,
             mean_v2,
+            moment_errors,
         }
     }
 }
@@ -1250,6 +1322,9 @@ pub struct NormalizedHistogram {
     /// Mean of u and of v² over the vertices.
     pub mean_u: f64,
     pub mean_v2: f64,
+    /// Standard errors of `mean_u` and `mean_v2`
+    /// ([`ClassTally::moment_errors`]), if the document has their sums.
+    pub moment_errors: Option<[f64; 2]>,
 }
 
 /// One row of the summary of a kernel document.
@@ -1594,6 +1669,13 @@ mod tests {
             assert!(
                 (ha.mean_u - hb.mean_u).abs() < 1e-12 && (ha.mean_v2 - hb.mean_v2).abs() < 1e-12
             );
+            let (ea, eb) = (ha.moment_errors.unwrap(), hb.moment_errors.unwrap());
+            for (x, y) in ea.iter().zip(&eb) {
+                assert!(
+                    (x - y).abs() <= 1e-9 * x.abs(),
+                    "{class:?}: {ea:?} against {eb:?}"
+                );
+            }
         }
     }
 
@@ -1693,6 +1775,81 @@ mod tests {
         assert!(
             (reported / spread - 1.0).abs() < 0.15,
             "reported σ {reported:.5} against the spread {spread:.5}"
+        );
+    }
+
+    #[test]
+    fn moment_errors_match_the_spread_over_batches() {
+        // Paths of geometric length (mean 10) whose vertices share a random
+        // offset across the axis, so that a path's vertices are correlated:
+        // the reported errors of mean u and mean v² (all vertices, and the
+        // first vertex) against their spread over 400 batches of 300 paths.
+        let mut rng = PathRng::new(12, 0);
+        let grid = PairGrid::default();
+        let classes = [VertexClass::All, VertexClass::First];
+        // [class][u or v²] → (means, reported errors).
+        let mut seen = [
+            [(Vec::new(), Vec::new()), (Vec::new(), Vec::new())],
+            Default::default(),
+        ];
+        for _ in 0..400 {
+            let paths: Vec<Vec<[f64; 2]>> = (0..300)
+                .map(|_| {
+                    let offset = 2.0 * rng.uniform();
+                    let mut v = Vec::new();
+                    loop {
+                        v.push([0.5 + rng.uniform() - 0.5, offset + 0.5 * rng.uniform()]);
+                        if rng.uniform() < 0.1 {
+                            break v;
+                        }
+                    }
+                })
+                .collect();
+            let (_, c) = cell(&paths);
+            for (k, class) in classes.into_iter().enumerate() {
+                let h = c.normalized(&grid, class, 0.5, 1.0, 1.0);
+                let se = h.moment_errors.expect("tallied with their sums");
+                for (i, mean) in [h.mean_u, h.mean_v2].into_iter().enumerate() {
+                    seen[k][i].0.push(mean);
+                    seen[k][i].1.push(se[i]);
+                }
+            }
+        }
+        for (k, class) in classes.into_iter().enumerate() {
+            for (i, (means, errors)) in seen[k].iter().enumerate() {
+                let n = means.len() as f64;
+                let mean = means.iter().sum::<f64>() / n;
+                let spread =
+                    (means.iter().map(|m| (m - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
+                let reported = errors.iter().sum::<f64>() / n;
+                assert!(
+                    (reported / spread - 1.0).abs() < 0.15,
+                    "{class:?}, moment {i}: reported {reported:.5} against the spread {spread:.5}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn documents_without_moment_sums_have_no_moment_errors() {
+        let (grid, c) = cell(&[vec![[0.5, 0.3]], vec![[0.5, 0.7]; 2]]);
+        let mut old = serde_json::to_value(&c).unwrap();
+        for class in old["classes"].as_array_mut().unwrap() {
+            for key in ["sq_u_q", "cross_u_q", "sq_v2_q", "cross_v2_q"] {
+                class.as_object_mut().unwrap().remove(key);
+            }
+        }
+        let old: CellTally = serde_json::from_value(old).unwrap();
+        let h = old.normalized(&grid, VertexClass::All, 0.5, 1.0, 1.0);
+        assert_eq!(h.moment_errors, None);
+        assert_eq!(
+            h.mean_v2,
+            c.normalized(&grid, VertexClass::All, 0.5, 1.0, 1.0).mean_v2
+        );
+        assert!(
+            c.normalized(&grid, VertexClass::All, 0.5, 1.0, 1.0)
+                .moment_errors
+                .is_some()
         );
     }
 }

@@ -7,7 +7,7 @@ use crate::error::{Error, Result};
 use crate::fit::aggregation::{AggregationRow, aggregation_row};
 use crate::fit::gmm::histogram_of;
 use crate::fit::lm::FitReport;
-use crate::fit::meta::{Cell, Components, fit_metamodel};
+use crate::fit::meta::{Cell, Components, PlaneMoments, fit_metamodel};
 use crate::forward::kernel::{KernelDoc, VertexClass};
 use crate::metamodel::kernel::{Gmm, manual_kernel};
 use crate::metamodel::meta::MetaModelFile;
@@ -104,7 +104,7 @@ pub fn aggregation_summary(rows: &[AggregationRow]) -> String {
             r.len()
         );
     }
-    s += "vertices  window holds (worst cell)          whole plane: |Δ mean t| worst   rms s meta/data\n";
+    s += "vertices  window holds (worst cell)          whole plane: |Δ mean t| worst   rms s meta/data   within the targets (or 2 se of the data): mean t, rms s\n";
     for class in classes {
         let r = of(class);
         let Some(w) = r.iter().min_by(|a, b| a.window.total_cmp(&b.window)) else {
@@ -124,16 +124,45 @@ pub fn aggregation_summary(rows: &[AggregationRow]) -> String {
         let (lo, hi) = moments.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), m| {
             (lo.min(m.1), hi.max(m.1))
         });
+        let planes: Vec<_> = r.iter().filter_map(|x| x.plane.map(|p| (x.d, p))).collect();
+        // Cells within the targets, with or without the data's error.
+        let within = |i: usize, with_se: bool| {
+            planes
+                .iter()
+                .filter(|(d, [data, meta])| {
+                    let se = data.se.filter(|_| with_se).unwrap_or([0.0; 2]);
+                    moment_within(*d, data, meta, se)[i]
+                })
+                .count()
+        };
         s += &format!(
-            "{:<9} {:>6.2} % (α = {}, d = {} MFP)        {:>8.3} MFP               {lo:.2}–{hi:.2}\n",
+            "{:<9} {:>6.2} % (α = {}, d = {} MFP)        {:>8.3} MFP               {lo:.2}–{hi:.2}         {} ({}), {} ({}) of {}\n",
             class.name(),
             100.0 * w.window,
             w.alpha,
             w.d,
-            dt
+            dt,
+            within(0, false),
+            within(0, true),
+            within(1, false),
+            within(1, true),
+            planes.len()
         );
     }
     s
+}
+
+/// Whether the meta-model's whole-plane moments meet the targets against
+/// the data's ([`crate::fit::gmm::moment_tolerances`]: |Δ mean t| within
+/// 0.05·d (+ 0.01λ), rms s within 10 %), each target widened by twice the
+/// data's standard error `se` (MFP; 0 for the targets alone).
+pub fn moment_within(d: f64, data: &PlaneMoments, meta: &PlaneMoments, se: [f64; 2]) -> [bool; 2] {
+    let (tol_t, tol_s) = crate::fit::gmm::moment_tolerances(d);
+    let rms = data.rms_s.max(1e-300);
+    [
+        (meta.mean_t - data.mean_t).abs() <= tol_t + 2.0 * se[0],
+        (meta.rms_s / rms).ln().abs() <= tol_s + 2.0 * se[1] / rms,
+    ]
 }
 
 /// The aggregation-error table as Markdown (α_t errors in albedo units),
@@ -145,10 +174,16 @@ pub fn aggregation_table(rows: &[AggregationRow]) -> String {
     );
     for r in rows {
         let (t, sd) = match r.plane {
-            Some([data, meta]) => (
-                format!("{:+.3} / {:+.3}", data.mean_t, meta.mean_t),
-                format!("{:.3} / {:.3}", data.rms_s, meta.rms_s),
-            ),
+            Some([data, meta]) => match data.se {
+                Some([et, es]) => (
+                    format!("{:+.3} ± {et:.3} / {:+.3}", data.mean_t, meta.mean_t),
+                    format!("{:.3} ± {es:.3} / {:.3}", data.rms_s, meta.rms_s),
+                ),
+                None => (
+                    format!("{:+.3} / {:+.3}", data.mean_t, meta.mean_t),
+                    format!("{:.3} / {:.3}", data.rms_s, meta.rms_s),
+                ),
+            },
             None => ("—".into(), "—".into()),
         };
         s += &format!(
