@@ -658,6 +658,29 @@ mod tests {
     use super::*;
     use crate::fit::gmm::KernelHistogram;
 
+    #[test]
+    fn moments_within_the_targets_or_twice_the_data_error() {
+        let data = PlaneMoments {
+            mean_t: 0.5,
+            rms_s: 1.0,
+            se: Some([0.02, 0.05]),
+        };
+        // d = 1: τ_t = 0.05 + 0.015; rms s within 10 % (ln 1.1).
+        let meta = PlaneMoments {
+            mean_t: 0.58,
+            rms_s: 0.85,
+            se: None,
+        };
+        assert_eq!(moment_within(1.0, &data, &meta, [0.0; 2]), [false, false]);
+        assert_eq!(moment_within(1.0, &data, &meta, [0.02, 0.05]), [true, true]);
+        let near = PlaneMoments {
+            mean_t: 0.55,
+            rms_s: 0.95,
+            se: None,
+        };
+        assert_eq!(moment_within(1.0, &data, &near, [0.0; 2]), [true, true]);
+    }
+
     fn template(d: f64) -> KernelHistogram {
         let lambda = 0.5 * d + 1.0;
         KernelHistogram {
