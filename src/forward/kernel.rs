@@ -290,7 +290,7 @@ impl ClassTally {
     /// (S the path's Σu or Σv²); to first order (the delta method, as for
     /// the bins) Var(R) ≈ Σw²(S − R·n_c)²/(Σw·n_c)², expanded in the
     /// tallied sums. `total_sq` is Σw²·n_c².
-    pub fn moment_errors(&self, total_sq: f64) -> Option<(f64, f64)> {
+    pub fn moment_errors(&self, total_sq: f64) -> Option<[f64; 2]> {
         if self.sq_v2_q == 0 {
             return None;
         }
@@ -301,10 +301,10 @@ impl ClassTally {
             let ez2 = sq / (q * q) - 2.0 * r * cross / q + r * r * total_sq;
             ez2.max(0.0).sqrt() / nv
         };
-        Some((
+        Some([
             se(self.sq_u_q as f64, self.cross_u_q as f64, mu),
             se(self.sq_v2_q as f64, self.cross_v2_q as f64, mv),
-        ))
+        ])
     }
 }
 
@@ -461,7 +461,7 @@ impl CellTally {
         }
         let (overflow, overflow_sigma, overflow_count_sigma) = stat(bins);
         let (mean_u, mean_v2) = cl.means();
-        let moment_errors = cl.moment_errors(total_sq).map(|(u, v)| [u, v]);
+        let moment_errors = cl.moment_errors(total_sq);
         NormalizedHistogram {
             albedo,
             d,

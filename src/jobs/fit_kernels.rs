@@ -110,21 +110,17 @@ pub fn aggregation_summary(rows: &[AggregationRow]) -> String {
         let Some(w) = r.iter().min_by(|a, b| a.window.total_cmp(&b.window)) else {
             continue;
         };
-        let moments: Vec<(f64, f64)> = r
-            .iter()
-            .filter_map(|x| x.plane)
-            .map(|[data, meta]| {
-                (
-                    (meta.mean_t - data.mean_t).abs(),
-                    meta.rms_s / data.rms_s.max(1e-300),
-                )
-            })
-            .collect();
-        let dt = moments.iter().map(|m| m.0).fold(0.0, f64::max);
-        let (lo, hi) = moments.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), m| {
-            (lo.min(m.1), hi.max(m.1))
-        });
         let planes: Vec<_> = r.iter().filter_map(|x| x.plane.map(|p| (x.d, p))).collect();
+        let dt = planes
+            .iter()
+            .map(|(_, [data, meta])| (meta.mean_t - data.mean_t).abs())
+            .fold(0.0, f64::max);
+        let (lo, hi) = planes
+            .iter()
+            .map(|(_, [data, meta])| meta.rms_s / data.rms_s.max(1e-300))
+            .fold((f64::INFINITY, 0.0f64), |(lo, hi), m| {
+                (lo.min(m), hi.max(m))
+            });
         // Cells within the targets, with or without the data's error.
         let within = |i: usize, with_se: bool| {
             planes
