@@ -20,7 +20,9 @@ use svkernel::metamodel::meta::MetaModelFile;
 use svkernel::pair::VertexClass;
 use svkernel::provenance::Provenance;
 use svkernel::render::estimator::{Allocation, Sampling, Sequence};
-use svkernel::render::svbssrdf::{AlbedoSpace, DensityLaw, InteriorKernel, SPACE_BLUR, Split};
+use svkernel::render::svbssrdf::{
+    AlbedoSpace, DensityKernel, DensityLaw, InteriorKernel, SPACE_BLUR, Split,
+};
 
 #[derive(Parser)]
 #[command(
@@ -634,6 +636,12 @@ struct RenderArgs {
     /// kernel).
     #[arg(long, value_enum, default_value_t = DensityLaw::Endpoints)]
     density_law: DensityLaw,
+    /// Kernel-method variant: how the kernels are placed where the density
+    /// varies (scaled: at the endpoints' mean density, weighted by the
+    /// density across the mixture; warp: the optical warp along the pair,
+    /// weighted within each component).
+    #[arg(long, value_enum, default_value_t = DensityKernel::Warp)]
+    density_kernel: DensityKernel,
     /// Paths of the reference (default: the scene's `reference_paths`; 1e7 notation).
     #[arg(long, value_parser = parse_count)]
     paths: Option<u64>,
@@ -1755,6 +1763,7 @@ fn render(a: RenderArgs) -> Result<()> {
             split: a.split,
             coarse_variance: a.coarse_variance,
             density_law: a.density_law,
+            density_kernel: a.density_kernel,
         },
         seed: a.seed,
         reference_paths: a.paths,

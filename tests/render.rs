@@ -9,7 +9,9 @@ use svkernel::render::analysis::analyse;
 use svkernel::render::estimator::{Image, Sampling};
 use svkernel::render::reference::Reference;
 use svkernel::render::scene::Scene;
-use svkernel::render::svbssrdf::{AlbedoSpace, DensityLaw, InteriorKernel, Method, Split, Variant};
+use svkernel::render::svbssrdf::{
+    AlbedoSpace, DensityKernel, DensityLaw, InteriorKernel, Method, Split, Variant,
+};
 
 fn scene_file(name: &str, toml: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("svk-render-{}", std::process::id()));
@@ -455,6 +457,11 @@ fn hard_cases_give_finite_images() {
                     DensityLaw::Kernel
                 } else {
                     DensityLaw::Endpoints
+                },
+                density_kernel: if on {
+                    DensityKernel::Scaled
+                } else {
+                    DensityKernel::Warp
                 },
             };
             let passes = render_scene(&scene, &o).unwrap_or_else(|e| panic!("{name}: {e}"));

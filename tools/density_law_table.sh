@@ -1,16 +1,17 @@
 #!/usr/bin/env bash
-# The density-law table of docs/measurements.md: `learned` and `manual`
+# The density tables of docs/measurements.md: `learned` and `manual`
 # against the reference, relative RMSE (noise subtracted) and mean relative
-# bias, with the profile scaled by the kernel's mean density
-# (`--density-law kernel`) and by the densities at both ends (`endpoints`),
-# on every scene whose density varies: the canonical `density`, the two
-# step scenes of scenes/extra, four steps the law was chosen on and three
-# held-out scenes (written below, not in scenes/).
+# bias, on every scene whose density varies: the canonical `density`, the
+# two step scenes of scenes/extra, four steps the law was chosen on, three
+# held-out scenes and two held-out textured steps (written below, not in
+# scenes/). Each scene is rendered once per value of one option:
 #
-#   bash tools/density_law_table.sh [OUT]      # default out/density_law_table
+#   bash tools/density_law_table.sh [OUT]      # --density-law kernel|endpoints
+#   OPTION=density-kernel VALUES="scaled warp" bash tools/density_law_table.sh [OUT]
 #
-# Writes OUT/<law>/<scene>/render.json and OUT/table.md. About 15 minutes on
-# 2 cores. Needs python3 (standard library only).
+# Writes OUT/<value>/<scene>/render.json and OUT/table.md. About 15 minutes
+# per value on 2 cores (the reference is rendered once per scene and value).
+# Needs python3 (standard library only).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 out=${1:-out/density_law_table}
@@ -47,15 +48,19 @@ scene held_ramp_checker '{ pattern = "checker", values = [0.2, 0.9], cell = 1.0 
 scene held_density_checker 0.8 '{ pattern = "checker", values = [1.0, 3.0], cell = 2.0 }' 1.0
 scene held_step_diffuse '{ pattern = "stripes", values = [0.4, 0.9], width = 1.0 }' \
   "$(step 0.5,3.0)" 1.0 diffuse
+scene held_bright_step '{ pattern = "stripes", values = [0.9, 0.99], width = 0.5, angle = 0.0 }' \
+  "$(step 1.0,4.0)" 1.0
+scene held_dark_step '{ pattern = "checker", values = [0.3, 0.7], cell = 0.5 }' "$(step 4.0,1.0)" 1.0
 
 scenes="scenes/density.toml scenes/extra/density_step.toml scenes/extra/uniform_step.toml
   $(ls "$out"/scenes/*.toml | tr '\n' ' ')"
-laws="kernel endpoints"
+option=${OPTION:-density-law}
+laws=${VALUES:-kernel endpoints}
 for law in $laws; do
   for s in $scenes; do
     name=$(basename "$s" .toml)
     "$bin" render "$s" --method reference,learned,manual --paths "$paths" --spp "$spp" \
-      --density-law "$law" --out "$out/$law/$name" > /dev/null
+      "--$option" "$law" --out "$out/$law/$name" > /dev/null
   done
 done
 

@@ -536,8 +536,9 @@ fn warped_masses(
 ///   the vertices weighted by the density, α_t = ∫Kρα/∫Kρ;
 /// * the optical warp: the unit-density kernel at the
 ///   optical distance D = ∫ρ along the pair, mapped back through τ(t);
-/// * the warp as a renderer could place it: each component's centre mapped
-///   back through τ, its width σ·d/D, density-weighted within the component.
+/// * the warp as the renderer places it (`--density-kernel warp`): each
+///   component's centre mapped back through τ, its width σ·d/D,
+///   density-weighted within the component.
 pub fn density_step_experiment(
     file: &MetaModelFile,
     alphas: &[f64],
