@@ -2149,6 +2149,25 @@ mod tests {
         (m, t)
     }
 
+    /// `learned` with `variant` on one albedo channel over a density map.
+    fn learned_over(
+        variant: Variant,
+        t: &Arc<BasisTable>,
+        meta: &Arc<MetaModelFile>,
+        albedo: &TexelMap,
+        density: &TexelMap,
+    ) -> SvBssrdf {
+        SvBssrdf::new(
+            Method::Learned,
+            variant,
+            t.clone(),
+            Some(meta.clone()),
+            vec![albedo.clone()],
+            Density::Map(density.clone()),
+        )
+        .unwrap()
+    }
+
     fn noise_map(n: usize, tau: f64, lo: f64, hi: f64, seed: u64) -> TexelMap {
         let mut rng = PathRng::new(seed, 0);
         let v = (0..n * n).map(|_| lo + (hi - lo) * rng.uniform()).collect();
@@ -2785,15 +2804,7 @@ mod tests {
                 density_kernel: DensityKernel::Scaled,
                 ..Variant::default()
             };
-            let sv = SvBssrdf::new(
-                Method::Learned,
-                variant,
-                t.clone(),
-                Some(meta.clone()),
-                vec![albedo.clone()],
-                Density::Map(density.clone()),
-            )
-            .unwrap();
+            let sv = learned_over(variant, &t, &meta, &albedo, &density);
             for (xi, xe) in [([0.1, -0.2], [0.9, 0.4]), ([-1.0, 1.0], [1.5, -2.0])] {
                 let got = sv.eval(0, xi, xe, &mut Scratch::default());
                 let delta = [xe[0] - xi[0], xe[1] - xi[1]];
@@ -2875,15 +2886,7 @@ mod tests {
             density_kernel: DensityKernel::Warp,
             ..Variant::default()
         };
-        let sv = SvBssrdf::new(
-            Method::Learned,
-            variant,
-            t.clone(),
-            Some(meta.clone()),
-            vec![albedo.clone()],
-            Density::Map(density.clone()),
-        )
-        .unwrap();
+        let sv = learned_over(variant, &t, &meta, &albedo, &density);
         // d = 1.6 with the step 0.5 from x_i, on a node boundary of the
         // density's samples: D = 0.5·1 + 1.1·4 = 4.9.
         let (xi, xe) = ([-0.5, 0.3], [1.1, 0.3]);
@@ -2920,18 +2923,16 @@ mod tests {
         let want = (profile(1.0) * profile(4.0)).sqrt();
         assert!((got / want - 1.0).abs() < 1e-12, "{got} against {want}");
         // Scaled at the endpoints' mean density: another α_t.
-        let scaled = SvBssrdf::new(
-            Method::Learned,
+        let scaled = learned_over(
             Variant {
                 density_kernel: DensityKernel::Scaled,
                 ..variant
             },
-            t.clone(),
-            Some(meta.clone()),
-            vec![albedo.clone()],
-            Density::Map(density),
-        )
-        .unwrap();
+            &t,
+            &meta,
+            &albedo,
+            &density,
+        );
         let other = scaled.eval(0, xi, xe, &mut Scratch::default());
         assert!((other / got - 1.0).abs() > 1e-4, "{other} against {got}");
     }
@@ -2944,18 +2945,16 @@ mod tests {
         let albedo = noise_map(24, 0.25, 0.2, 0.95, 12);
         let density = TexelMap::new(24, 24, 0.25, vec![2.5; 24 * 24]).unwrap();
         let make = |density_kernel| {
-            SvBssrdf::new(
-                Method::Learned,
+            learned_over(
                 Variant {
                     density_kernel,
                     ..Variant::default()
                 },
-                t.clone(),
-                Some(meta.clone()),
-                vec![albedo.clone()],
-                Density::Map(density.clone()),
+                &t,
+                &meta,
+                &albedo,
+                &density,
             )
-            .unwrap()
         };
         let (scaled, warp) = (make(DensityKernel::Scaled), make(DensityKernel::Warp));
         for (xi, xe) in [([0.1, -0.2], [0.9, 0.4]), ([-1.0, 1.0], [1.5, -2.0])] {
