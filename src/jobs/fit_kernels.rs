@@ -170,16 +170,14 @@ pub fn aggregation_table(rows: &[AggregationRow]) -> String {
     );
     for r in rows {
         let (t, sd) = match r.plane {
-            Some([data, meta]) => match data.se {
-                Some([et, es]) => (
-                    format!("{:+.3} ± {et:.3} / {:+.3}", data.mean_t, meta.mean_t),
-                    format!("{:.3} ± {es:.3} / {:.3}", data.rms_s, meta.rms_s),
-                ),
-                None => (
-                    format!("{:+.3} / {:+.3}", data.mean_t, meta.mean_t),
-                    format!("{:.3} / {:.3}", data.rms_s, meta.rms_s),
-                ),
-            },
+            Some([data, meta]) => {
+                // "± error" where the data has one.
+                let pm = |i: usize| data.se.map_or(String::new(), |e| format!(" ± {:.3}", e[i]));
+                (
+                    format!("{:+.3}{} / {:+.3}", data.mean_t, pm(0), meta.mean_t),
+                    format!("{:.3}{} / {:.3}", data.rms_s, pm(1), meta.rms_s),
+                )
+            }
             None => ("—".into(), "—".into()),
         };
         s += &format!(

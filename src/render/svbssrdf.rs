@@ -1438,9 +1438,10 @@ impl SvBssrdf {
         }
     }
 
-    /// The all-vertex kernel and, with `vertex`, its first- and
-    /// last-vertex kernels at (d, α, ρ) into `scratch`, placed by `warp`
-    /// where the density varies ([`DensityKernel::Warp`]).
+    /// The all-vertex kernel and, with `vertex`, its first- (when the
+    /// model has one) and last-vertex (in exitance) kernels at (d, α, ρ)
+    /// into `scratch`, each placed by `warp` where the density varies
+    /// ([`DensityKernel::Warp`]).
     #[inline]
     fn kernels(
         &self,
@@ -1451,20 +1452,21 @@ impl SvBssrdf {
         warp: Option<&OpticalAxis>,
         scratch: &mut Scratch,
     ) {
-        self.all_kernel(d, alpha, rho, &mut scratch.kernel);
-        if let Some(meta) = vertex {
-            self.end_kernels(meta, d, alpha, rho, scratch);
-        }
-        if let Some(w) = warp {
-            w.place(&mut scratch.kernel);
-            if let Some(meta) = vertex {
-                if meta.first.is_some() {
-                    w.place(&mut scratch.first);
-                }
-                if self.basis.observable == Observable::Exitance {
-                    w.place(&mut scratch.last);
-                }
+        let place = |g: &mut Gmm| {
+            if let Some(w) = warp {
+                w.place(g);
             }
+        };
+        self.all_kernel(d, alpha, rho, &mut scratch.kernel);
+        place(&mut scratch.kernel);
+        let Some(meta) = vertex else { return };
+        if let Some(first) = &meta.first {
+            first.eval_into(d, alpha, rho, &mut scratch.first);
+            place(&mut scratch.first);
+        }
+        if self.basis.observable == Observable::Exitance {
+            meta.last.eval_into(d, alpha, rho, &mut scratch.last);
+            place(&mut scratch.last);
         }
     }
 
@@ -1496,25 +1498,6 @@ impl SvBssrdf {
             w.tau[k + 1] = w.tau[k] + w.rho[k] * h;
         }
         Some(w)
-    }
-
-    /// The first- (when the model has one) and last-vertex (in exitance)
-    /// kernels at (d, α, ρ) into `scratch`.
-    #[inline]
-    fn end_kernels(
-        &self,
-        meta: &MetaModelFile,
-        d: f64,
-        alpha: f64,
-        rho: f64,
-        scratch: &mut Scratch,
-    ) {
-        if let Some(first) = &meta.first {
-            first.eval_into(d, alpha, rho, &mut scratch.first);
-        }
-        if self.basis.observable == Observable::Exitance {
-            meta.last.eval_into(d, alpha, rho, &mut scratch.last);
-        }
     }
 
     /// [`Self::total_albedo`] in the darker regime's two-scale aggregands
