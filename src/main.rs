@@ -21,7 +21,7 @@ use svkernel::pair::VertexClass;
 use svkernel::provenance::Provenance;
 use svkernel::render::estimator::{Allocation, Sampling, Sequence};
 use svkernel::render::svbssrdf::{
-    AlbedoSpace, DensityKernel, DensityLaw, InteriorKernel, SPACE_BLUR, Split,
+    AlbedoSpace, DensityKernel, DensityLaw, InteriorKernel, SPACE_BLUR, Split, StepEnds,
 };
 
 #[derive(Parser)]
@@ -642,6 +642,13 @@ struct RenderArgs {
     /// weighted within each component).
     #[arg(long, value_enum, default_value_t = DensityKernel::Warp)]
     density_kernel: DensityKernel,
+    /// Kernel-method variant (learned): a pair whose ends lie on the two
+    /// sides of a coarse albedo step (their albedos averaged over 1 MFP
+    /// differ) has its ends counted once in α_t and their albedos read in
+    /// the two-scale space (correlated), or is treated as any other pair
+    /// (independent). docs/design.md §4.
+    #[arg(long, value_enum, default_value_t = StepEnds::Correlated)]
+    step_ends: StepEnds,
     /// Paths of the reference (default: the scene's `reference_paths`; 1e7 notation).
     #[arg(long, value_parser = parse_count)]
     paths: Option<u64>,
@@ -1764,6 +1771,7 @@ fn render(a: RenderArgs) -> Result<()> {
             coarse_variance: a.coarse_variance,
             density_law: a.density_law,
             density_kernel: a.density_kernel,
+            step_ends: a.step_ends,
         },
         seed: a.seed,
         reference_paths: a.paths,

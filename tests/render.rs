@@ -10,7 +10,7 @@ use svkernel::render::estimator::{Image, Sampling};
 use svkernel::render::reference::Reference;
 use svkernel::render::scene::Scene;
 use svkernel::render::svbssrdf::{
-    AlbedoSpace, DensityKernel, DensityLaw, InteriorKernel, Method, Split, Variant,
+    AlbedoSpace, DensityKernel, DensityLaw, InteriorKernel, Method, Split, StepEnds, Variant,
 };
 
 fn scene_file(name: &str, toml: &str) -> PathBuf {
@@ -462,6 +462,11 @@ fn hard_cases_give_finite_images() {
                     DensityKernel::Scaled
                 } else {
                     DensityKernel::Warp
+                },
+                step_ends: if on {
+                    StepEnds::Correlated
+                } else {
+                    StepEnds::Independent
                 },
             };
             let passes = render_scene(&scene, &o).unwrap_or_else(|e| panic!("{name}: {e}"));

@@ -57,7 +57,10 @@
 //!   α_t, ρ̄ recomputed;
 //! * `interior` ([`InteriorKernel`]): where `learned`'s α_t leaves out the
 //!   first and last vertices, which l_i and l_e already count; by default
-//!   blended in where the all-vertex α_t exceeds 0.95 ([`INTERIOR_RAMP`]).
+//!   blended in where the all-vertex α_t exceeds 0.95 ([`INTERIOR_RAMP`]);
+//! * `step_ends` ([`StepEnds`]): where x_i and x_e lie on the two sides of
+//!   a coarse albedo step, `learned` counts the ends once in α_t and reads
+//!   l_i, l_e towards their two-scale means.
 //!
 //! # r → 0
 //! R₁ diverges like 1/r (integrable in area); S is evaluated at
@@ -172,6 +175,9 @@ pub struct Variant {
     pub density_law: DensityLaw,
     /// How the kernels are placed where the density varies.
     pub density_kernel: DensityKernel,
+    /// How `learned` treats a pair whose ends lie on the two sides of a
+    /// coarse albedo step.
+    pub step_ends: StepEnds,
 }
 
 /// Where `learned` takes α_t under the kernel of a path's interior
@@ -212,9 +218,7 @@ pub const INTERIOR_RAMP: [f64; 2] = [0.95, 0.98];
 /// ([`Split::Regimes`]) change regime over the same ramp.
 #[inline]
 pub fn bright_weight(alpha: f64) -> f64 {
-    let [lo, hi] = INTERIOR_RAMP;
-    let t = ((alpha - lo) / (hi - lo)).clamp(0.0, 1.0);
-    t * t * (3.0 - 2.0 * t)
+    smoothstep(alpha, INTERIOR_RAMP)
 }
 
 impl InteriorKernel {
@@ -291,6 +295,68 @@ impl DensityKernel {
             DensityKernel::Warp => "warp",
         }
     }
+}
+
+/// How `learned` treats a pair whose ends lie on the two sides of a coarse
+/// albedo step (docs/design.md §4, "Pairs across a step").
+///
+/// α_t under the all-vertex kernel counts the first and last vertices a
+/// second time (l_i and l_e count them already). Where both ends see the
+/// same albedo, that double count stands in for a second-order effect:
+/// the paths that reach an end keep to the albedo around it
+/// ([`InteriorKernel`]). Where the ends lie on the two sides of a coarse
+/// step, it counts the dark end's lobe against paths that keep to the
+/// bright side, and the end vertices' linear means miss that a path whose
+/// end vertex lies on the bright side stayed there.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, clap::ValueEnum)]
+pub enum StepEnds {
+    /// Every pair alike: α_t under the all-vertex kernel (unless the
+    /// interior kernel blends in by albedo), l_i and l_e linear means.
+    Independent,
+    /// The default. By the contrast between the ends' regional albedos
+    /// ᾱ_R = G ∗ α over [`REGION_SCALE`] (density-weighted, lengths
+    /// divided by the local density): α_t under the interior kernel with
+    /// weight w_once = s(min(|α_i − α_e|, |ᾱ_R(x_i) − ᾱ_R(x_e)|)) over
+    /// [`STEP_RAMP`] (the ends on two sides, point and region), and l_i,
+    /// l_e moved towards their two-scale means ([`AlbedoSpace`], the
+    /// darker regime's split) with weight w_corr = s(|ᾱ_R(x_i) −
+    /// ᾱ_R(x_e)|) over [`CORRELATED_RAMP`] (a coarse contrast around the
+    /// pair), s the smoothstep. A fine texture has no regional contrast,
+    /// so nothing changes there. Measured on pencil beams across albedo
+    /// steps and on the bench scenes (docs/measurements.md).
+    #[default]
+    Correlated,
+}
+
+impl StepEnds {
+    /// The name on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            StepEnds::Independent => "independent",
+            StepEnds::Correlated => "correlated",
+        }
+    }
+}
+
+/// The scale (MFP at the local density) of the ends' regional albedo
+/// ᾱ_R = G ∗ α that tells a coarse step from a fine texture
+/// ([`StepEnds::Correlated`]): about one flight, the reach of an end
+/// vertex's lobe.
+pub const REGION_SCALE: f64 = 1.0;
+
+/// The contrast (albedo units) over which [`StepEnds::Correlated`]'s
+/// w_once rises from 0 to 1.
+pub const STEP_RAMP: [f64; 2] = [0.1, 0.4];
+
+/// The regional contrast (albedo units) over which
+/// [`StepEnds::Correlated`]'s w_corr rises from 0 to 1.
+pub const CORRELATED_RAMP: [f64; 2] = [0.02, 0.08];
+
+/// The smoothstep (C¹) of `x` over `[lo, hi]`: 0 below, 1 above.
+#[inline]
+fn smoothstep(x: f64, [lo, hi]: [f64; 2]) -> f64 {
+    let t = ((x - lo) / (hi - lo)).clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
 }
 
 /// Midpoint samples of the density along the pair for
@@ -587,6 +653,7 @@ impl Default for Variant {
             coarse_variance: 0.0,
             density_law: DensityLaw::Endpoints,
             density_kernel: DensityKernel::Warp,
+            step_ends: StepEnds::Correlated,
         }
     }
 }
@@ -635,6 +702,11 @@ impl Variant {
             s += "+";
             s += self.density_kernel.name();
             s += "-kernel";
+        }
+        if self.step_ends != d.step_ends {
+            s += "+";
+            s += self.step_ends.name();
+            s += "-step-ends";
         }
         s
     }
@@ -1398,28 +1470,46 @@ impl SvBssrdf {
             _ => None,
         };
         self.kernels(vertex, d, a0, rho0, warp.as_ref(), scratch);
+        // A pair across a coarse albedo step ([`StepEnds`]): the ends'
+        // weights of being counted once and of their two-scale means.
+        let [once, correlated] = match vertex {
+            Some(_) => self.step_weights(c, xi, [xi[0] + delta[0], xi[1] + delta[1]], [ai, ae]),
+            None => [0.0; 2],
+        };
+        let dark = self.pyramids().mapped.as_ref();
+        let end_albedo = |kernel: &Gmm, linear: f64| match dark {
+            Some(q) if correlated > 0.0 => {
+                linear + correlated * (self.aggregate(c, &frame, kernel, Some(q)).0 - linear)
+            }
+            _ => linear,
+        };
         // A point vertex kernel (manual's both; learned's first under normal
         // incidence, `first: None`; the last for the radiance along the
         // normal, whose last vertex lies straight below x_e) aggregates to
         // the point albedo in hand.
         let (mut li, mut le) = (ai, ae);
         if vertex.is_some_and(|meta| meta.first.is_some()) {
-            li = self.aggregate(c, &frame, &scratch.first, None).0;
+            li = end_albedo(
+                &scratch.first,
+                self.aggregate(c, &frame, &scratch.first, None).0,
+            );
         }
         let interior = vertex.filter(|_| self.variant.interior != InteriorKernel::Never);
         // The bright regime's weight (its split, [`Split::Regimes`]).
         let bright = bright_weight(a0);
         let (mut alpha_t, mut rho_bar, le_read) =
-            self.regime_albedo(interior, c, &frame, d, rho0, bright, scratch);
+            self.regime_albedo(interior, c, &frame, d, rho0, [bright, once], scratch);
         if vertex.is_some() && b.observable == Observable::Exitance {
-            le = le_read.unwrap_or_else(|| self.aggregate(c, &frame, &scratch.last, None).0);
+            let linear =
+                le_read.unwrap_or_else(|| self.aggregate(c, &frame, &scratch.last, None).0);
+            le = end_albedo(&scratch.last, linear);
         }
         if self.variant.two_pass {
             // The warp keeps its mean density along the pair.
             let rho = if warp.is_some() { rho0 } else { rho_bar };
             self.kernels(interior, d, alpha_t, rho, warp.as_ref(), scratch);
             (alpha_t, rho_bar, _) =
-                self.regime_albedo(interior, c, &frame, d, rho, bright, scratch);
+                self.regime_albedo(interior, c, &frame, d, rho, [bright, once], scratch);
         }
         // The single-scattering vertex: below x_i under normal incidence;
         // for the radiance along the normal below x_e under any light.
@@ -1435,6 +1525,38 @@ impl SvBssrdf {
             DensityLaw::Endpoints if ri == re => profile(ri),
             DensityLaw::Endpoints => (profile(ri) * profile(re)).sqrt(),
             DensityLaw::Kernel => profile(rho_bar),
+        }
+    }
+
+    /// [`StepEnds::Correlated`]'s weights [w_once, w_corr] for the pair
+    /// x_i → x_e of channel `c` with point albedos `[ai, ae]` (0 under
+    /// [`StepEnds::Independent`]).
+    #[inline]
+    fn step_weights(&self, c: usize, xi: [f64; 2], xe: [f64; 2], [ai, ae]: [f64; 2]) -> [f64; 2] {
+        if self.variant.step_ends != StepEnds::Correlated {
+            return [0.0; 2];
+        }
+        let contrast = (self.regional_albedo(c, xi) - self.regional_albedo(c, xe)).abs();
+        [
+            smoothstep(contrast.min((ai - ae).abs()), STEP_RAMP),
+            smoothstep(contrast, CORRELATED_RAMP),
+        ]
+    }
+
+    /// The regional albedo ᾱ_R of channel `c` at `x` ([`StepEnds`]): the
+    /// (density-weighted) mean of α under a Gaussian of σ =
+    /// [`REGION_SCALE`]/ρ(x), one query of the linear pyramids.
+    #[inline]
+    fn regional_albedo(&self, c: usize, x: [f64; 2]) -> f64 {
+        let p = self.pyramids();
+        let sigma = REGION_SCALE / self.density_at(x[0], x[1]);
+        match (&self.material.density, &p.rho) {
+            (Density::Map(_), Some(rho)) => {
+                let ([r, ra], _) =
+                    GaussianPyramid::integrate_n([rho, &p.linear.rho_alpha[c]], x, sigma);
+                ra / r
+            }
+            _ => GaussianPyramid::integrate_n([&p.linear.alpha[c]], x, sigma).0[0],
         }
     }
 
@@ -1503,7 +1625,8 @@ impl SvBssrdf {
     /// [`Self::total_albedo`] in the darker regime's two-scale aggregands
     /// and the bright regime's ([`Split::Regimes`]), blended by `bright`,
     /// the bright regime's weight; each regime is read only where its
-    /// weight is not 0. (ρ̄ and l_e do not depend on the regime.)
+    /// weight is not 0. (ρ̄ and l_e do not depend on the regime.) `once` is
+    /// the interior kernel's least weight ([`StepEnds`]).
     #[allow(clippy::too_many_arguments)]
     #[inline]
     fn regime_albedo(
@@ -1513,12 +1636,12 @@ impl SvBssrdf {
         frame: &Frame,
         d: f64,
         rho: f64,
-        bright: f64,
+        [bright, once]: [f64; 2],
         scratch: &mut Scratch,
     ) -> (f64, f64, Option<f64>) {
         let p = self.pyramids();
         let dark = p.mapped.as_ref();
-        let mut under = |q| self.total_albedo(interior, c, frame, d, rho, q, scratch);
+        let mut under = |q| self.total_albedo(interior, c, frame, d, rho, q, once, scratch);
         match p.bright.as_ref() {
             Some(q) if bright >= 1.0 => under(Some(q)),
             Some(q) if bright > 0.0 => {
@@ -1534,8 +1657,9 @@ impl SvBssrdf {
     /// with the two-scale aggregands `q` (the linear mean if `None`), with
     /// `interior` (the model whose end kernels are in `scratch`) blended
     /// towards α_t under the interior vertices' kernel by the variant's
-    /// [`InteriorKernel::weight`] at the all-vertex α_t; and l_e where that
-    /// blend read it on the way (in exitance at a constant density).
+    /// [`InteriorKernel::weight`] at the all-vertex α_t, or `once` where
+    /// that is larger ([`StepEnds`]); and l_e where that blend read it on
+    /// the way (in exitance at a constant density).
     #[allow(clippy::too_many_arguments)]
     #[inline]
     fn total_albedo(
@@ -1546,11 +1670,12 @@ impl SvBssrdf {
         d: f64,
         rho: f64,
         q: Option<&Mapped>,
+        once: f64,
         scratch: &mut Scratch,
     ) -> (f64, f64, Option<f64>) {
         let (parts, rho_bar) = self.aggregate_parts(c, frame, &scratch.kernel, q);
         let all = self.alpha_of_parts(parts, q);
-        let w = self.variant.interior.weight(all);
+        let w = self.variant.interior.weight(all).max(once);
         let Some(meta) = interior.filter(|_| w > 0.0) else {
             return (all, rho_bar, None);
         };
@@ -2517,6 +2642,7 @@ mod tests {
                             coarse_variance: 0.0,
                             density_law: DensityLaw::Kernel,
                             density_kernel: DensityKernel::Warp,
+                            step_ends: StepEnds::Correlated,
                         },
                         Variant {
                             coarse_variance: COARSE_VARIANCE,
@@ -2785,6 +2911,7 @@ mod tests {
                 density_law,
                 interior,
                 density_kernel: DensityKernel::Scaled,
+                step_ends: StepEnds::Independent,
                 ..Variant::default()
             };
             let sv = learned_over(variant, &t, &meta, &albedo, &density);
@@ -2845,6 +2972,67 @@ mod tests {
                     "{density_law:?}, two_pass {two_pass}, {xi:?} → {xe:?}"
                 );
             }
+        }
+    }
+
+    /// Across a coarse step (0.9 | 0.25 at x = 0, ends 2 MFP from it), the
+    /// correlated step ends take α_t under the interior kernel and l_e as
+    /// its two-scale mean (written out here); on a checker of 0.05 MFP,
+    /// whose regional albedo is flat, they change nothing, bit for bit.
+    #[test]
+    fn step_ends_count_the_ends_once_across_a_coarse_step_only() {
+        let (_, t) = basis();
+        let meta = Arc::new(crate::testing::shipped_meta());
+        assert!(meta.first.is_none(), "l_i is the point albedo here");
+        let variant = |step_ends| Variant {
+            density_kernel: DensityKernel::Scaled,
+            step_ends,
+            ..Variant::default()
+        };
+        let n = 48;
+        let step: Vec<f64> = (0..n * n)
+            .map(|k| if k % n < n / 2 { 0.9 } else { 0.25 })
+            .collect();
+        let albedo = TexelMap::new(n, n, 0.25, step).unwrap();
+        let density = TexelMap::new(n, n, 0.25, vec![1.0; n * n]).unwrap();
+        let sv = learned_over(variant(StepEnds::Correlated), &t, &meta, &albedo, &density);
+        let independent =
+            learned_over(variant(StepEnds::Independent), &t, &meta, &albedo, &density);
+        let (xi, xe) = ([-2.0, 0.1], [2.0, -0.1]);
+        assert_eq!(sv.step_weights(0, xi, xe, [0.9, 0.25]), [1.0, 1.0]);
+        let got = sv.eval(0, xi, xe, &mut Scratch::default());
+        let delta = [xe[0] - xi[0], xe[1] - xi[1]];
+        let d = delta[0].hypot(delta[1]);
+        let frame = Frame {
+            xi,
+            axis: [delta[0] / d, delta[1] / d],
+        };
+        let a0 = 0.5 * (0.9 + 0.25);
+        let dark = sv.pyramids().mapped.as_ref();
+        let agg = |k: &Gmm| sv.aggregate(0, &frame, k, dark).0;
+        let (all, last) = (
+            meta.all.eval(d, a0, 1.0).gmm,
+            meta.last.eval(d, a0, 1.0).gmm,
+        );
+        let mut inner = Gmm::default();
+        let m = t.interior_vertices(d, agg(&all));
+        interior_into(&all, None, Some(&last), d, m, &mut inner);
+        let (single, multi) = t.parts(d, agg(&inner));
+        let want = 0.9 * single + 0.9 * agg(&last) * multi;
+        assert!((got - want).abs() <= 1e-12 * want, "{got} vs {want}");
+        let before = independent.eval(0, xi, xe, &mut Scratch::default());
+        assert!((got / before - 1.0).abs() > 0.01, "{got} vs {before}");
+
+        let (checker, rho) = fine_checker(96);
+        let sv = learned_over(variant(StepEnds::Correlated), &t, &meta, &checker, &rho);
+        let independent = learned_over(variant(StepEnds::Independent), &t, &meta, &checker, &rho);
+        for (xi, xe) in [([0.01, 0.02], [0.93, -0.4]), ([-1.1, 0.7], [1.3, 0.9])] {
+            assert_eq!(sv.step_weights(0, xi, xe, [0.2, 0.8]), [0.0, 0.0]);
+            let mut scratch = Scratch::default();
+            assert_eq!(
+                sv.eval(0, xi, xe, &mut scratch),
+                independent.eval(0, xi, xe, &mut scratch)
+            );
         }
     }
 
