@@ -2276,6 +2276,14 @@ mod tests {
         .unwrap()
     }
 
+    /// The distance x_i → x_e and the pair's frame.
+    fn pair_frame(xi: [f64; 2], xe: [f64; 2]) -> (f64, Frame) {
+        let delta = [xe[0] - xi[0], xe[1] - xi[1]];
+        let d = delta[0].hypot(delta[1]);
+        let axis = [delta[0] / d, delta[1] / d];
+        (d, Frame { xi, axis })
+    }
+
     fn noise_map(n: usize, tau: f64, lo: f64, hi: f64, seed: u64) -> TexelMap {
         let mut rng = PathRng::new(seed, 0);
         let v = (0..n * n).map(|_| lo + (hi - lo) * rng.uniform()).collect();
@@ -2917,12 +2925,7 @@ mod tests {
             let sv = learned_over(variant, &t, &meta, &albedo, &density);
             for (xi, xe) in [([0.1, -0.2], [0.9, 0.4]), ([-1.0, 1.0], [1.5, -2.0])] {
                 let got = sv.eval(0, xi, xe, &mut Scratch::default());
-                let delta = [xe[0] - xi[0], xe[1] - xi[1]];
-                let d = delta[0].hypot(delta[1]);
-                let frame = Frame {
-                    xi,
-                    axis: [delta[0] / d, delta[1] / d],
-                };
+                let (d, frame) = pair_frame(xi, xe);
                 let (ai, ae) = (albedo.at(xi[0], xi[1]), albedo.at(xe[0], xe[1]));
                 let rho0 = 0.5 * (density.at(xi[0], xi[1]) + density.at(xe[0], xe[1]));
                 let a0 = 0.5 * (ai + ae);
@@ -3001,12 +3004,7 @@ mod tests {
         let (xi, xe) = ([-2.0, 0.1], [2.0, -0.1]);
         assert_eq!(sv.step_weights(0, xi, xe, [0.9, 0.25]), [1.0, 1.0]);
         let got = sv.eval(0, xi, xe, &mut Scratch::default());
-        let delta = [xe[0] - xi[0], xe[1] - xi[1]];
-        let d = delta[0].hypot(delta[1]);
-        let frame = Frame {
-            xi,
-            axis: [delta[0] / d, delta[1] / d],
-        };
+        let (d, frame) = pair_frame(xi, xe);
         let a0 = 0.5 * (0.9 + 0.25);
         let dark = sv.pyramids().mapped.as_ref();
         let agg = |k: &Gmm| sv.aggregate(0, &frame, k, dark).0;
