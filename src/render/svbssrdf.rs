@@ -1473,7 +1473,10 @@ impl SvBssrdf {
         // A pair across a coarse albedo step ([`StepEnds`]): the ends'
         // weights of being counted once and of their two-scale means.
         let [once, correlated] = match vertex {
-            Some(_) => self.step_weights(c, xi, [xi[0] + delta[0], xi[1] + delta[1]], [ai, ae]),
+            Some(_) => {
+                let xe = [xi[0] + delta[0], xi[1] + delta[1]];
+                self.step_weights(c, [xi, xe], [ai, ae], [ri, re])
+            }
             None => [0.0; 2],
         };
         let dark = self.pyramids().mapped.as_ref();
@@ -1529,27 +1532,34 @@ impl SvBssrdf {
     }
 
     /// [`StepEnds::Correlated`]'s weights [w_once, w_corr] for the pair
-    /// x_i → x_e of channel `c` with point albedos `[ai, ae]` (0 under
-    /// [`StepEnds::Independent`]).
+    /// x_i → x_e of channel `c` with point albedos `[ai, ae]` and point
+    /// densities `[ri, re]` (0 under [`StepEnds::Independent`]).
     #[inline]
-    fn step_weights(&self, c: usize, xi: [f64; 2], xe: [f64; 2], [ai, ae]: [f64; 2]) -> [f64; 2] {
+    fn step_weights(
+        &self,
+        c: usize,
+        [xi, xe]: [[f64; 2]; 2],
+        [ai, ae]: [f64; 2],
+        [ri, re]: [f64; 2],
+    ) -> [f64; 2] {
         if self.variant.step_ends != StepEnds::Correlated {
             return [0.0; 2];
         }
-        let contrast = (self.regional_albedo(c, xi) - self.regional_albedo(c, xe)).abs();
+        let contrast = (self.regional_albedo(c, xi, ri) - self.regional_albedo(c, xe, re)).abs();
         [
             smoothstep(contrast.min((ai - ae).abs()), STEP_RAMP),
             smoothstep(contrast, CORRELATED_RAMP),
         ]
     }
 
-    /// The regional albedo ᾱ_R of channel `c` at `x` ([`StepEnds`]): the
-    /// (density-weighted) mean of α under a Gaussian of σ =
-    /// [`REGION_SCALE`]/ρ(x), one query of the linear pyramids.
+    /// The regional albedo ᾱ_R of channel `c` at `x`, where the density
+    /// is `rho` ([`StepEnds`]): the (density-weighted) mean of α under a
+    /// Gaussian of σ = [`REGION_SCALE`]/ρ, one query of the linear
+    /// pyramids.
     #[inline]
-    fn regional_albedo(&self, c: usize, x: [f64; 2]) -> f64 {
+    fn regional_albedo(&self, c: usize, x: [f64; 2], rho: f64) -> f64 {
         let p = self.pyramids();
-        let sigma = REGION_SCALE / self.density_at(x[0], x[1]);
+        let sigma = REGION_SCALE / rho;
         match (&self.material.density, &p.rho) {
             (Density::Map(_), Some(rho)) => {
                 let ([r, ra], _) =
@@ -3002,7 +3012,10 @@ mod tests {
         let independent =
             learned_over(variant(StepEnds::Independent), &t, &meta, &albedo, &density);
         let (xi, xe) = ([-2.0, 0.1], [2.0, -0.1]);
-        assert_eq!(sv.step_weights(0, xi, xe, [0.9, 0.25]), [1.0, 1.0]);
+        assert_eq!(
+            sv.step_weights(0, [xi, xe], [0.9, 0.25], [1.0, 1.0]),
+            [1.0, 1.0]
+        );
         let got = sv.eval(0, xi, xe, &mut Scratch::default());
         let (d, frame) = pair_frame(xi, xe);
         let a0 = 0.5 * (0.9 + 0.25);
@@ -3025,7 +3038,11 @@ mod tests {
         let sv = learned_over(variant(StepEnds::Correlated), &t, &meta, &checker, &rho);
         let independent = learned_over(variant(StepEnds::Independent), &t, &meta, &checker, &rho);
         for (xi, xe) in [([0.01, 0.02], [0.93, -0.4]), ([-1.1, 0.7], [1.3, 0.9])] {
-            assert_eq!(sv.step_weights(0, xi, xe, [0.2, 0.8]), [0.0, 0.0]);
+            let densities = [rho.at(xi[0], xi[1]), rho.at(xe[0], xe[1])];
+            assert_eq!(
+                sv.step_weights(0, [xi, xe], [0.2, 0.8], densities),
+                [0.0, 0.0]
+            );
             let mut scratch = Scratch::default();
             assert_eq!(
                 sv.eval(0, xi, xe, &mut scratch),
