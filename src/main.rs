@@ -21,7 +21,7 @@ use svkernel::pair::VertexClass;
 use svkernel::provenance::Provenance;
 use svkernel::render::estimator::{Allocation, Sampling, Sequence};
 use svkernel::render::svbssrdf::{
-    AlbedoSpace, DensityKernel, DensityLaw, InteriorKernel, SPACE_BLUR, Split, StepEnds,
+    AlbedoSpace, DensityKernel, DensityLaw, InteriorKernel, LastKernel, SPACE_BLUR, Split, StepEnds,
 };
 
 #[derive(Parser)]
@@ -649,6 +649,12 @@ struct RenderArgs {
     /// (independent). docs/design.md §4.
     #[arg(long, value_enum, default_value_t = StepEnds::Correlated)]
     step_ends: StepEnds,
+    /// Kernel-method variant (learned, exitance): the albedo at which the
+    /// last-vertex kernel that gives α_e is queried: l_e, the albedo its
+    /// vertex sees (exit), or the pair's mean albedo α₀ (pair).
+    /// docs/design.md §4.
+    #[arg(long, value_enum, default_value_t = LastKernel::Exit)]
+    last_kernel: LastKernel,
     /// Paths of the reference (default: the scene's `reference_paths`; 1e7 notation).
     #[arg(long, value_parser = parse_count)]
     paths: Option<u64>,
@@ -1772,6 +1778,7 @@ fn render(a: RenderArgs) -> Result<()> {
             density_law: a.density_law,
             density_kernel: a.density_kernel,
             step_ends: a.step_ends,
+            last_kernel: a.last_kernel,
         },
         seed: a.seed,
         reference_paths: a.paths,

@@ -10,7 +10,8 @@ use svkernel::render::estimator::{Image, Sampling};
 use svkernel::render::reference::Reference;
 use svkernel::render::scene::Scene;
 use svkernel::render::svbssrdf::{
-    AlbedoSpace, DensityKernel, DensityLaw, InteriorKernel, Method, Split, StepEnds, Variant,
+    AlbedoSpace, DensityKernel, DensityLaw, InteriorKernel, LastKernel, Method, Split, StepEnds,
+    Variant,
 };
 
 fn scene_file(name: &str, toml: &str) -> PathBuf {
@@ -467,6 +468,11 @@ fn hard_cases_give_finite_images() {
                     StepEnds::Correlated
                 } else {
                     StepEnds::Independent
+                },
+                last_kernel: if on {
+                    LastKernel::Exit
+                } else {
+                    LastKernel::Pair
                 },
             };
             let passes = render_scene(&scene, &o).unwrap_or_else(|e| panic!("{name}: {e}"));
