@@ -31,7 +31,8 @@
 //!   Point albedos are the
 //!   texel under the point. The kernels' *shapes* are the meta-model's at
 //!   an **anchor** map A, held fixed while α varies: the vertex kernels at
-//!   (A_i + A_e)/2, the all-vertex kernel at the anchor's first-pass α_t
+//!   (A_i + A_e)/2 (the renderer's `--last-kernel pair`), the all-vertex
+//!   kernel at the anchor's first-pass α_t
 //!   (the renderer's two passes), on a grid of [`ANCHOR_BINS`] albedos
 //!   uniform in √(1 − α). With the shapes fixed, M is a smooth function of
 //!   α whose gradient this module computes exactly; the designer
