@@ -75,7 +75,7 @@ use crate::forward::maps::TexelMap;
 use crate::forward::medium::Observable;
 use crate::metamodel::basis::{BasisModel, ExpMixture, albedo_coordinate};
 use crate::metamodel::kernel::{Component, Gmm, INTERIOR_MIN, interior_into};
-use crate::metamodel::meta::MetaModelFile;
+use crate::metamodel::meta::{MetaModel, MetaModelFile};
 use crate::render::pyramid::{self, GaussianPyramid};
 use std::f64::consts::PI;
 use std::sync::{Arc, OnceLock};
@@ -998,6 +998,23 @@ struct Aggregand {
     rho_alpha: Vec<GaussianPyramid>,
 }
 
+/// `model`'s kernel at (d, α, ρ) into `out`, placed by `warp` where the
+/// density varies ([`DensityKernel::Warp`]).
+#[inline]
+fn placed_into(
+    model: &MetaModel,
+    d: f64,
+    alpha: f64,
+    rho: f64,
+    warp: Option<&OpticalAxis>,
+    out: &mut Gmm,
+) {
+    model.eval_into(d, alpha, rho, out);
+    if let Some(w) = warp {
+        w.place(out);
+    }
+}
+
 /// Per-thread scratch space of [`SvBssrdf::eval`] (no allocation per call).
 #[derive(Clone, Debug, Default)]
 pub struct Scratch {
@@ -1561,10 +1578,7 @@ impl SvBssrdf {
                 // sees ([`LastKernel::Exit`]; a pair across a step keeps
                 // the kernel at α₀).
                 let alpha = le + once * (a0 - le);
-                meta.last.eval_into(d, alpha, rho0, &mut scratch.last);
-                if let Some(w) = &warp {
-                    w.place(&mut scratch.last);
-                }
+                placed_into(&meta.last, d, alpha, rho0, warp.as_ref(), &mut scratch.last);
                 let linear = self.aggregate(c, &frame, &scratch.last, None).0;
                 le = end_albedo(&scratch.last, linear);
             }
@@ -1646,21 +1660,16 @@ impl SvBssrdf {
         warp: Option<&OpticalAxis>,
         scratch: &mut Scratch,
     ) {
-        let place = |g: &mut Gmm| {
-            if let Some(w) = warp {
-                w.place(g);
-            }
-        };
         self.all_kernel(d, alpha, rho, &mut scratch.kernel);
-        place(&mut scratch.kernel);
+        if let Some(w) = warp {
+            w.place(&mut scratch.kernel);
+        }
         let Some(meta) = vertex else { return };
         if let Some(first) = &meta.first {
-            first.eval_into(d, alpha, rho, &mut scratch.first);
-            place(&mut scratch.first);
+            placed_into(first, d, alpha, rho, warp, &mut scratch.first);
         }
         if self.basis.observable == Observable::Exitance {
-            meta.last.eval_into(d, alpha, rho, &mut scratch.last);
-            place(&mut scratch.last);
+            placed_into(&meta.last, d, alpha, rho, warp, &mut scratch.last);
         }
     }
 
