@@ -30,9 +30,10 @@
 //!   (0.2·δ + 0.8·G_b) at every albedo; in the linear space α_t = ⟨α⟩.
 //!   Point albedos are the
 //!   texel under the point. The kernels' *shapes* are the meta-model's at
-//!   an **anchor** map A, held fixed while α varies: the vertex kernels at
-//!   (A_i + A_e)/2 (the renderer's `--last-kernel pair`), the all-vertex
-//!   kernel at the anchor's first-pass α_t
+//!   an **anchor** map A, held fixed while α varies: the first-vertex
+//!   kernel at (A_i + A_e)/2, the last-vertex kernel at the anchor's l_e
+//!   read under the kernel at that mean (the renderer's `--last-kernel
+//!   exit`), the all-vertex kernel at the anchor's first-pass α_t
 //!   (the renderer's two passes), on a grid of [`ANCHOR_BINS`] albedos
 //!   uniform in √(1 − α). With the shapes fixed, M is a smooth function of
 //!   α whose gradient this module computes exactly; the designer
@@ -185,10 +186,12 @@ impl Kernels {
 }
 
 /// The kernel bins of one channel's anchor: per (texel, offset), the bin of
-/// the vertex kernels and of the all-vertex kernel.
+/// the first-vertex kernel (the pair's mean albedo), of the all-vertex
+/// kernel (the first-pass α_t) and of the last-vertex kernel (the anchor's
+/// l_e).
 #[derive(Clone, Debug, Default)]
 pub struct Anchor {
-    bins: Vec<[u16; 2]>,
+    bins: Vec<[u16; 3]>,
 }
 
 /// The appearance model of one texture grid ([module docs](self)).
@@ -497,7 +500,11 @@ impl Appearance {
                     let b0 = k.bin(0.5 * (a[self.texel_of(xi)] + a[e]));
                     let plain = k.first_pass.as_ref().unwrap_or(&k.all);
                     let t = self.total(stack, xe, plain.get(o, b0)).0;
-                    [b0, k.bin(t)]
+                    // The last vertex's kernel at the albedo its vertex
+                    // sees: l_e under the kernel at the pair's mean, the
+                    // renderer's `--last-kernel exit` (one fixed-point step).
+                    let le = mean(&stack.alpha, xe, k.last.get(o, b0));
+                    [b0, k.bin(t), k.bin(le)]
                 })
             })
             .collect();
@@ -523,7 +530,8 @@ impl Appearance {
         let gradient = self.gradient(&lin, anchor, g);
         let n_k = self.offsets.len();
         // Reads as rows [e, o, shift x, shift y, σ, share] of one class,
-        // at the anchor's bin `which` (0: vertex kernels, 1: all-vertex).
+        // at the anchor's bin `which` (0: first vertex, 1: all-vertex,
+        // 2: last vertex).
         let reads = |plans: Option<&Plans>, which: usize| {
             let (Some(plans), Some(stack)) = (plans, self.grid.as_ref()) else {
                 return Vec::new();
@@ -577,7 +585,7 @@ impl Appearance {
             },
             "levels": levels,
             "reads_all": reads(k.map(|k| &k.all), 1),
-            "reads_last": reads(k.map(|k| &k.last), 0),
+            "reads_last": reads(k.map(|k| &k.last), 2),
             "reads_first": reads(k.and_then(|k| k.first.as_ref()), 0),
             "has_first": k.is_some_and(|k| k.first.is_some()),
             "alpha": alpha,
@@ -680,7 +688,7 @@ impl Appearance {
                             texels[self.texel_of(xi)] += w * c_i;
                             texels[e] += w * c_e;
                             if let (Some(k), Some(stack)) = (&self.kernels, stack) {
-                                let [b0, b1] = anchor.bins[e * n_k + o];
+                                let [b0, b1, b2] = anchor.bins[e * n_k + o];
                                 let all = k.all.get(o, b1);
                                 if c_t != 0.0 {
                                     match &stack.two_scale {
@@ -695,7 +703,7 @@ impl Appearance {
                                     }
                                 }
                                 let a = &stack.alpha;
-                                scatter(a, xe, k.last.get(o, b0), [w * c_le], [&mut nodes]);
+                                scatter(a, xe, k.last.get(o, b2), [w * c_le], [&mut nodes]);
                                 if let Some(f) = &k.first {
                                     scatter(a, xe, f.get(o, b0), [w * c_li], [&mut nodes]);
                                 }
@@ -830,9 +838,9 @@ impl Appearance {
                 let (Some(k), Some(stack)) = (&self.kernels, stack) else {
                     unreachable!("learned is built with its kernels")
                 };
-                let [b0, b1] = anchor.bins[e * n_k + o];
+                let [b0, b1, b2] = anchor.bins[e * n_k + o];
                 let (at, y) = self.total(stack, xe, k.all.get(o, b1));
-                let le = mean(&stack.alpha, xe, k.last.get(o, b0));
+                let le = mean(&stack.alpha, xe, k.last.get(o, b2));
                 let first = k.first.as_ref().map(|f| f.get(o, b0));
                 let li = first.map_or(ai, |f| mean(&stack.alpha, xe, f));
                 let t = at.clamp(0.0, 1.0);
@@ -1199,6 +1207,49 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn the_last_vertex_kernel_is_anchored_at_the_albedo_its_vertex_sees() {
+        // A step of 0.95 | 0.3 at x = 0 on a map 6 MFP wide. For an exit
+        // 2 MFP into the dark side and entries on the bright side, the
+        // first-vertex bin is the pair's mean albedo, and the last vertex's
+        // is the l_e under it: the dark side's albedo, not the pair's mean.
+        let (nx, ny) = (60, 6);
+        let m = model(
+            Method::Learned,
+            nx,
+            ny,
+            Illumination::Uniform,
+            &Quadrature::default(),
+        );
+        let k = m.kernels.as_ref().expect("learned has kernels");
+        let step: Vec<f64> = (0..nx * ny)
+            .map(|e| if e % nx < nx / 2 { 0.95 } else { 0.3 })
+            .collect();
+        let anchor = m.anchor(&step);
+        let n_k = m.samples();
+        let e = 2 * nx + nx / 2 + 20;
+        let xe = m.centre(e);
+        assert!((xe[0] - 2.05).abs() < 1e-9, "exit at {xe:?}");
+        let mut mixed = 0;
+        for (o, off) in m.offsets.iter().enumerate() {
+            if xe[0] + off.delta[0] >= 0.0 {
+                continue;
+            }
+            mixed += 1;
+            let [b0, _, b2] = anchor.bins[e * n_k + o];
+            assert_eq!(b0, k.bin(0.5 * (0.95 + 0.3)), "offset {o}");
+            assert!(
+                b2.abs_diff(k.bin(0.3)) <= 2 && b0.abs_diff(b2) >= 8,
+                "offset {o}: last-vertex bin {b2}, dark side's {}, pair's {b0}",
+                k.bin(0.3)
+            );
+        }
+        assert!(mixed > 0, "no entry on the bright side");
+        // On a constant map the two bins agree.
+        let anchor = m.anchor(&vec![0.6; nx * ny]);
+        assert!(anchor.bins.iter().all(|[b0, _, b2]| b0 == b2));
     }
 
     #[test]
