@@ -623,11 +623,11 @@ struct RenderArgs {
     #[arg(long, value_enum, default_value_t = Split::Regimes)]
     split: Split,
     /// Kernel-method variant, transport space: the weight c of the coarse
-    /// albedo's variance within each kernel component, which moves the
-    /// two-scale mean y = ⟨√(1 − ᾱ)⟩ to y − c·Var/y (the albedo blurred over
-    /// 1 MFP). 0 (the default) turns it off; 0.25 is the measured weight for
-    /// albedo steps coarser than a mean free path, at 5–25 % more time per
-    /// evaluation. docs/design.md §4.
+    /// albedo's variance within each kernel component, less its part along
+    /// the pair's axis, which moves the two-scale mean y = ⟨√(1 − ᾱ)⟩ to
+    /// y − c·Var/y (the albedo blurred over 1 MFP). 0 (the default) turns it
+    /// off; 0.25 is the measured weight for albedo steps coarser than a mean
+    /// free path, at about 50 % more time per evaluation. docs/design.md §4.
     #[arg(long, default_value_t = 0.0)]
     coarse_variance: f64,
     /// Kernel-method variant: the density that scales the profile where the

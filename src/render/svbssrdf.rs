@@ -603,20 +603,27 @@ pub const COARSE_SCALE: f64 = 1.0;
 ///
 /// V the variance of φ(G_L ∗ α), L = [`COARSE_SCALE`], within each
 /// component k of the kernel (density-weighted where the density varies),
-/// averaged over the components. To second order, y − c·V/y is the power
-/// mean (⟨y^p⟩)^{1/p} with p = 1 − 2c: c = 1/4 averages the coarse part in
-/// (1 − α)^{1/4} instead of √(1 − α). Only the variance within a
-/// component counts: the spread between components follows the progress
-/// from x_i to x_e that every path makes, and counting it too brightens
-/// the far side of a step (+8 % at 4 MFP, docs/measurements.md). Variation
-/// finer than L has hardly any variance in ᾱ_L, so fine textures keep the
-/// two-scale mean. c = 1/4 was measured on an albedo edge and on stripes
-/// of width 0.5 and 4 MFP (docs/measurements.md): on the edge it takes
-/// `learned` from 2.7 to 1.9 %. It is off by default: it costs 5–25 % more
-/// time per evaluation (two more pyramids per kernel component) and two
-/// more pyramids at set-up, and it moves no canonical scene but `features`
-/// at ρ ≥ 2, which it makes slightly worse. Read in the transport space
-/// only.
+/// less its part along the pair's axis, averaged over the components. To
+/// second order, y − c·V/y is the power mean (⟨y^p⟩)^{1/p} with
+/// p = 1 − 2c: c = 1/4 averages the coarse part in (1 − α)^{1/4} instead
+/// of √(1 − α). Only the variance within a component counts: the spread
+/// between components follows the progress from x_i to x_e that every
+/// path makes, and counting it too brightens the far side of a step (+8 %
+/// at 4 MFP, docs/measurements.md). Within a component, variation along
+/// the axis is crossed in series, which the mean in φ already describes;
+/// what a path can choose is the side, across the axis. So the axial part,
+/// ((ỹ(μ + σu) − ỹ(μ − σu))/2)² with ỹ the component's mean of φ(ᾱ_L)
+/// moved by ±σ along the axis u, is taken out: on the albedo edge it takes
+/// `learned` from 1.72 to 1.40 % and holds the bright side within 2 % of
+/// the reference out to 4 MFP, where the isotropic variance overshot by
+/// up to 5 % (docs/measurements.md). Variation finer than L has hardly
+/// any variance in ᾱ_L, so fine textures keep the two-scale mean. c = 1/4
+/// was measured on an albedo edge and on stripes of width 0.5 and 4 MFP
+/// (docs/measurements.md). It is off by default: it costs about 40–60 %
+/// more time per evaluation (two more pyramids per kernel component and
+/// two axial reads) and two more pyramids at set-up, and it moves no
+/// canonical scene but `features` at ρ ≥ 2, which it makes slightly
+/// worse. Read in the transport space only.
 pub const COARSE_VARIANCE: f64 = 0.25;
 
 /// The least y by which [`COARSE_VARIANCE`]'s term divides.
@@ -1959,7 +1966,10 @@ impl SvBssrdf {
                             mu,
                             comp.sigma,
                         );
-                        add(comp.weight, b - a * a);
+                        let along = frame.along_axis_variance(mu, comp.sigma, |x| {
+                            GaussianPyramid::integrate_n([&y1.alpha[c]], x, comp.sigma).0[0]
+                        });
+                        add(comp.weight, b - a * a - along);
                     } else {
                         let ([r, a, b], _) = GaussianPyramid::integrate_n(
                             [rho, &y1.rho_alpha[c], &y2.rho_alpha[c]],
@@ -1967,7 +1977,15 @@ impl SvBssrdf {
                             comp.sigma,
                         );
                         let mean = a / r;
-                        add(comp.weight * r, b / r - mean * mean);
+                        let along = frame.along_axis_variance(mu, comp.sigma, |x| {
+                            let ([r, a], _) = GaussianPyramid::integrate_n(
+                                [rho, &y1.rho_alpha[c]],
+                                x,
+                                comp.sigma,
+                            );
+                            a / r
+                        });
+                        add(comp.weight * r, b / r - mean * mean - along);
                     }
                 }
                 self.means(p, [&m.phi, &m.residual], c, frame, kernel)
@@ -1975,6 +1993,7 @@ impl SvBssrdf {
             Density::Constant(rho) => {
                 let (mut wtot, mut sums) = (0.0, [0.0; 2]);
                 for comp in &kernel.components {
+                    let mu = frame.place(comp);
                     let ([y, res, a, b], _) = GaussianPyramid::integrate_n(
                         [
                             &m.phi.alpha[c],
@@ -1982,13 +2001,16 @@ impl SvBssrdf {
                             &y1.alpha[c],
                             &y2.alpha[c],
                         ],
-                        frame.place(comp),
+                        mu,
                         comp.sigma,
                     );
                     wtot += comp.weight;
                     sums[0] += comp.weight * y;
                     sums[1] += comp.weight * res;
-                    add(comp.weight, b - a * a);
+                    let along = frame.along_axis_variance(mu, comp.sigma, |x| {
+                        GaussianPyramid::integrate_n([&y1.alpha[c]], x, comp.sigma).0[0]
+                    });
+                    add(comp.weight, b - a * a - along);
                 }
                 (sums.map(|s| s / wtot), *rho)
             }
@@ -2304,6 +2326,25 @@ impl Frame {
             self.xi[0] + c.t * ux - c.s * uy,
             self.xi[1] + c.t * uy + c.s * ux,
         ]
+    }
+
+    /// The part along the pair axis of a component's variance of a field
+    /// f: ((f̃(μ + σu) − f̃(μ − σu))/2)², with f̃ = `mean` the field's mean
+    /// under the component's Gaussian centred at a point, u the axis and σ
+    /// the component's width. For a field linear over the component,
+    /// f = f₀ + g·x, the component's variance of f is σ²|g|² and this is
+    /// σ²(g·u)², its axial share.
+    #[inline]
+    fn along_axis_variance(
+        &self,
+        mu: [f64; 2],
+        sigma: f64,
+        mut mean: impl FnMut([f64; 2]) -> f64,
+    ) -> f64 {
+        let [ux, uy] = self.axis;
+        let ahead = mean([mu[0] + sigma * ux, mu[1] + sigma * uy]);
+        let behind = mean([mu[0] - sigma * ux, mu[1] - sigma * uy]);
+        0.25 * (ahead - behind) * (ahead - behind)
     }
 }
 
@@ -2637,9 +2678,9 @@ mod tests {
     fn coarse_variance_acts_on_coarse_steps_only() {
         let (_, t) = basis();
         let meta = Arc::new(crate::testing::shipped_meta());
-        let (nx, ny, tau) = (400, 40, 0.05);
+        let (nx, ny, tau) = (400, 80, 0.05);
         let x_of = |k: usize| ((k % nx) as f64 + 0.5) * tau - 0.5 * nx as f64 * tau;
-        // A step 0.2 | 0.9 at x = 0 (20 × 2 MFP) and stripes of 0.1 MFP.
+        // A step 0.2 | 0.9 at x = 0 (20 × 4 MFP) and stripes of 0.1 MFP.
         let step: Vec<f64> = (0..nx * ny)
             .map(|k| if x_of(k) < 0.0 { 0.2 } else { 0.9 })
             .collect();
@@ -2671,12 +2712,13 @@ mod tests {
                 let on = eval(values, COARSE_VARIANCE, density.clone(), xi, xe);
                 on / off
             };
-            // Beside the step, on the dark side and on the bright one: S
-            // grows, by less on the dark side, where single scattering
-            // carries most of it (measured: 2.5e-4 and 1.3 % at ρ = 1).
+            // Beside the step and along it, on the dark side and on the
+            // bright one: S grows, by less on the dark side, where single
+            // scattering carries most of it (measured: 4e-4 and 1.4 % at
+            // ρ = 1).
             for (xi, xe, least) in [
-                ([-1.5, 0.0], [-0.5, 0.0], 1e-4),
-                ([0.5, 0.0], [1.5, 0.0], 5e-3),
+                ([-0.5, -0.5], [-0.5, 0.5], 1e-4),
+                ([0.5, -0.5], [0.5, 0.5], 5e-3),
             ] {
                 let r = both(&step, xi, xe);
                 assert!(r > 1.0 + least, "{density:?} {xi:?} → {xe:?}: {r}");
@@ -2690,7 +2732,7 @@ mod tests {
         // A density map follows the same rule (its own, density-weighted
         // path): a constant map gives a constant density's S.
         let rho = || Density::Map(TexelMap::new(nx, ny, tau, vec![1.0; nx * ny]).unwrap());
-        for (xi, xe) in [([-1.5, 0.0], [-0.5, 0.0]), ([-8.0, 0.0], [-7.6, 0.0])] {
+        for (xi, xe) in [([-0.5, -0.5], [-0.5, 0.5]), ([-8.0, 0.0], [-7.6, 0.0])] {
             let (map, constant) = (
                 eval(&step, COARSE_VARIANCE, rho(), xi, xe),
                 eval(&step, COARSE_VARIANCE, Density::Constant(1.0), xi, xe),
@@ -2698,6 +2740,45 @@ mod tests {
             assert!(
                 (map / constant - 1.0).abs() < 1e-3,
                 "{xi:?}: {map} vs {constant}"
+            );
+        }
+        // Only the variance across the pair's axis counts: on a gentle ramp
+        // in x, a pair along x (the ramp in series) is left as it is, a
+        // pair along y (the ramp beside it) brightens. The isotropic
+        // variance would brighten both alike.
+        let (rx, ry) = (400, 80);
+        let ramp: Vec<f64> = (0..rx * ry)
+            .map(|k| 0.6 + 0.03 * (((k % rx) as f64 + 0.5) * tau - 0.5 * rx as f64 * tau))
+            .collect();
+        let ratio = |density: Density, xi: [f64; 2], xe: [f64; 2]| {
+            let sv = |c: f64| {
+                let variant = Variant {
+                    coarse_variance: c,
+                    ..Variant::default()
+                };
+                let map = TexelMap::new(rx, ry, tau, ramp.clone()).unwrap();
+                let (t, meta) = (t.clone(), Some(meta.clone()));
+                SvBssrdf::new(
+                    Method::Learned,
+                    variant,
+                    t,
+                    meta,
+                    vec![map],
+                    density.clone(),
+                )
+                .unwrap()
+                .eval(0, xi, xe, &mut Scratch::default())
+            };
+            sv(COARSE_VARIANCE) / sv(0.0)
+        };
+        let map = || Density::Map(TexelMap::new(rx, ry, tau, vec![1.0; rx * ry]).unwrap());
+        for density in [Density::Constant(1.0), map()] {
+            let beside = ratio(density.clone(), [0.0, -0.75], [0.0, 0.75]) - 1.0;
+            let series = ratio(density.clone(), [-0.75, 0.0], [0.75, 0.0]) - 1.0;
+            assert!(beside > 5e-5, "{density:?}: beside {beside}");
+            assert!(
+                series.abs() < 0.05 * beside,
+                "{density:?}: series {series}, beside {beside}"
             );
         }
         // Outside [0, 0.5]: a clear error.
