@@ -2746,33 +2746,12 @@ mod tests {
         // in x, a pair along x (the ramp in series) is left as it is, a
         // pair along y (the ramp beside it) brightens. The isotropic
         // variance would brighten both alike.
-        let (rx, ry) = (400, 80);
-        let ramp: Vec<f64> = (0..rx * ry)
-            .map(|k| 0.6 + 0.03 * (((k % rx) as f64 + 0.5) * tau - 0.5 * rx as f64 * tau))
-            .collect();
+        let ramp: Vec<f64> = (0..nx * ny).map(|k| 0.6 + 0.03 * x_of(k)).collect();
         let ratio = |density: Density, xi: [f64; 2], xe: [f64; 2]| {
-            let sv = |c: f64| {
-                let variant = Variant {
-                    coarse_variance: c,
-                    ..Variant::default()
-                };
-                let map = TexelMap::new(rx, ry, tau, ramp.clone()).unwrap();
-                let (t, meta) = (t.clone(), Some(meta.clone()));
-                SvBssrdf::new(
-                    Method::Learned,
-                    variant,
-                    t,
-                    meta,
-                    vec![map],
-                    density.clone(),
-                )
-                .unwrap()
-                .eval(0, xi, xe, &mut Scratch::default())
-            };
-            sv(COARSE_VARIANCE) / sv(0.0)
+            eval(&ramp, COARSE_VARIANCE, density.clone(), xi, xe)
+                / eval(&ramp, 0.0, density, xi, xe)
         };
-        let map = || Density::Map(TexelMap::new(rx, ry, tau, vec![1.0; rx * ry]).unwrap());
-        for density in [Density::Constant(1.0), map()] {
+        for density in [Density::Constant(1.0), rho()] {
             let beside = ratio(density.clone(), [0.0, -0.75], [0.0, 0.75]) - 1.0;
             let series = ratio(density.clone(), [-0.75, 0.0], [0.75, 0.0]) - 1.0;
             assert!(beside > 5e-5, "{density:?}: beside {beside}");
