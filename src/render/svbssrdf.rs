@@ -619,7 +619,7 @@ pub const COARSE_SCALE: f64 = 1.0;
 /// up to 5 % (docs/measurements.md). Variation finer than L has hardly
 /// any variance in ᾱ_L, so fine textures keep the two-scale mean. c = 1/4
 /// was measured on an albedo edge and on stripes of width 0.5 and 4 MFP
-/// (docs/measurements.md). It is off by default: it costs about 40–60 %
+/// (docs/measurements.md). It is off by default: it costs about 50 %
 /// more time per evaluation (two more pyramids per kernel component and
 /// two axial reads) and two more pyramids at set-up, and it moves no
 /// canonical scene but `features` at ρ ≥ 2, which it makes slightly
@@ -1955,6 +1955,12 @@ impl SvBssrdf {
                 var += w * v.max(0.0);
             }
         };
+        // The axial part of a component's variance of φ(ᾱ_L), unweighted.
+        let plain_along = |mu: [f64; 2], sigma: f64| {
+            frame.along_axis_variance(mu, sigma, |x| {
+                GaussianPyramid::integrate_n([&y1.alpha[c]], x, sigma).0[0]
+            })
+        };
         let (parts, rho_bar) = match &self.material.density {
             Density::Map(_) => {
                 let rho = p.rho.as_ref().expect("a density map has its ρ pyramid");
@@ -1966,10 +1972,7 @@ impl SvBssrdf {
                             mu,
                             comp.sigma,
                         );
-                        let along = frame.along_axis_variance(mu, comp.sigma, |x| {
-                            GaussianPyramid::integrate_n([&y1.alpha[c]], x, comp.sigma).0[0]
-                        });
-                        add(comp.weight, b - a * a - along);
+                        add(comp.weight, b - a * a - plain_along(mu, comp.sigma));
                     } else {
                         let ([r, a, b], _) = GaussianPyramid::integrate_n(
                             [rho, &y1.rho_alpha[c], &y2.rho_alpha[c]],
@@ -2007,10 +2010,7 @@ impl SvBssrdf {
                     wtot += comp.weight;
                     sums[0] += comp.weight * y;
                     sums[1] += comp.weight * res;
-                    let along = frame.along_axis_variance(mu, comp.sigma, |x| {
-                        GaussianPyramid::integrate_n([&y1.alpha[c]], x, comp.sigma).0[0]
-                    });
-                    add(comp.weight, b - a * a - along);
+                    add(comp.weight, b - a * a - plain_along(mu, comp.sigma));
                 }
                 (sums.map(|s| s / wtot), *rho)
             }
