@@ -741,6 +741,41 @@ enum Fit {
         /// Polynomial degrees in ln d and sqrt(1 − α), e.g. 3,3.
         #[arg(long, value_delimiter = ',', default_value = "4,3")]
         degree: Vec<usize>,
+        /// Fit the first- and last-vertex histograms summed onto a grid this
+        /// many times finer than the all-vertex one (a divisor of the tally's
+        /// own; exact, one vertex of each per path): fewer bins, a faster fit.
+        #[arg(long)]
+        vertex_refine: Option<usize>,
+    },
+    /// Make a fitted meta-model carry a fit over a wider box (d, α), which
+    /// answers the kernel queries outside its own box (the shipped model
+    /// carries data/profiles/metamodel_wide.json).
+    Outer {
+        /// The fitted meta-model.
+        #[arg(long)]
+        model: PathBuf,
+        /// The meta-model of the wider box.
+        #[arg(long)]
+        outer: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// The aggregation errors and whole-plane moments of a meta-model
+    /// against a kernel tally, cell by cell, without fitting (queries
+    /// outside the model's box go to its outer model, as in `render`).
+    CheckKernels {
+        #[arg(long = "in", default_value = DEFAULT_KERNELS)]
+        input: PathBuf,
+        /// Meta-model [default: $SVKERNEL_MODEL, else built in].
+        #[arg(long)]
+        model: Option<PathBuf>,
+        /// Sum the tally's first- and last-vertex histograms onto this
+        /// refinement first (as `fit kernels --vertex-refine`).
+        #[arg(long)]
+        vertex_refine: Option<usize>,
+        /// Also write the per-cell table (Markdown).
+        #[arg(long)]
+        out: Option<PathBuf>,
     },
     /// Export a few cells of the meta-model fit (residuals, Jᵀr, Jacobian
     /// columns) and one per-configuration GMM fit, for tools/jax_check.py
@@ -1441,12 +1476,29 @@ fn fit(f: Fit) -> Result<()> {
                 out.display()
             );
         }
+        Fit::Outer { model, outer, out } => {
+            let m = svkernel::jobs::fit_kernels::attach_outer(&model, &outer, &out)?;
+            let [a0, a1] = m.alpha_range();
+            let [d0, d1] = m.d_range();
+            println!(
+                "wrote {}: the model of {} (d ∈ [{:.3}, {:.3}] MFP, α ∈ [{}, {}]), and outside it \
+                 the one of {} (d ∈ [{d0:.3}, {d1:.3}] MFP, α ∈ [{a0}, {a1}])",
+                out.display(),
+                model.display(),
+                m.all.ln_d_range[0].exp(),
+                m.all.ln_d_range[1].exp(),
+                m.all.alpha_range[0],
+                m.all.alpha_range[1],
+                outer.display()
+            );
+        }
         Fit::Kernels {
             input,
             out,
             report: dir,
             components,
             degree,
+            vertex_refine,
         } => {
             use svkernel::jobs::fit_kernels;
             let components = match components[..] {
@@ -1465,7 +1517,17 @@ fn fit(f: Fit) -> Result<()> {
                     .unwrap_or(std::path::Path::new("."))
                     .join("metamodel_report")
             });
-            let r = fit_kernels::fit_kernels(&input, &out, &dir, components, (dx, dy), true)?;
+            let r = fit_kernels::fit_kernels(
+                &input,
+                &out,
+                &dir,
+                &fit_kernels::KernelFitOptions {
+                    components,
+                    degree: (dx, dy),
+                    vertex_refine,
+                },
+                true,
+            )?;
             print!("{}", fit_kernels::aggregation_summary(&r.aggregation));
             for j in &r.joint {
                 println!(
@@ -1480,6 +1542,24 @@ fn fit(f: Fit) -> Result<()> {
                 dir.display(),
                 r.wall_s
             );
+        }
+        Fit::CheckKernels {
+            input,
+            model,
+            vertex_refine,
+            out,
+        } => {
+            use svkernel::jobs::fit_kernels;
+            let (f, origin): (MetaModelFile, _) = Shipped::Meta.load(model.as_deref())?;
+            let rows = fit_kernels::check_kernels(&input, &f, vertex_refine)?;
+            println!("{} against {}:", origin.display(), input.display());
+            print!("{}", fit_kernels::aggregation_summary(&rows));
+            if let Some(out) = out {
+                svkernel::jobs::store::write_atomic(
+                    &out,
+                    fit_kernels::aggregation_table(&rows, false).as_bytes(),
+                )?;
+            }
         }
         Fit::ExportKernels {
             input,

@@ -700,12 +700,14 @@ fn render_resume_after_kill_is_bitwise_identical() {
 #[test]
 fn missing_albedo_range_is_simulated_once_and_cached() {
     let d = tmpdir("extend");
-    let scene = small_scene(&d.join("dark.toml"), "stripes", [0.1, 0.6], "width", "");
+    // Below the outer model's 0.05: the shipped model covers [0.05, 0.999].
+    let scene = small_scene(&d.join("dark.toml"), "stripes", [0.02, 0.6], "width", "");
+    let covered = small_scene(&d.join("covered.toml"), "stripes", [0.1, 0.6], "width", "");
     let cache = d.join("cache");
-    let render = |out: &str, extra: &[&str]| {
+    let render_of = |scene: &Path, out: &str, extra: &[&str]| {
         let o = bin()
             .arg("render")
-            .arg(&scene)
+            .arg(scene)
             .args(["--method", "learned", "--spp", "16", "--cache"])
             .arg(&cache)
             .args(extra)
@@ -718,14 +720,18 @@ fn missing_albedo_range_is_simulated_once_and_cached() {
             String::from_utf8_lossy(&o.stderr).into_owned(),
         )
     };
+    let render = |out: &str, extra: &[&str]| render_of(&scene, out, extra);
     let ext = |out: &str| {
         json(&d.join(out).join("render.json"))["passes"][0]["metamodel_extension"].clone()
     };
+    assert!(render_of(&covered, "covered", &[]).0);
+    assert!(ext("covered").is_null(), "{}", ext("covered"));
     assert!(render("a", &[]).0);
     let first = ext("a");
     assert_eq!(first["cached"], false, "{first}");
-    assert_eq!(first["missing"][0], 0.1);
-    assert!(first["albedos"][3].as_f64().unwrap() > 0.2);
+    assert_eq!(first["missing"][0], 0.02);
+    assert_eq!(first["missing"][1], 0.05);
+    assert!(first["albedos"][3].as_f64().unwrap() > 0.05);
     let model = PathBuf::from(first["model"].as_str().unwrap());
     assert!(model.starts_with(&cache) && model.exists());
     assert!(render("b", &[]).0);
@@ -738,7 +744,7 @@ fn missing_albedo_range_is_simulated_once_and_cached() {
     assert_ne!(
         img("a"),
         img("c"),
-        "the extension changes the kernel below α = 0.2"
+        "the extension changes the kernel below α = 0.05"
     );
     std::fs::write(&model, "{ not json").unwrap();
     let (ok, err) = render("d", &[]);

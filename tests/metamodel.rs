@@ -2,7 +2,7 @@
 
 use std::path::Path;
 use std::process::Command;
-use svkernel::fit::aggregation::aggregation_row;
+use svkernel::fit::aggregation::{AggregationRow, aggregation_row};
 use svkernel::fit::gmm::fit_gmm;
 use svkernel::fit::lm::FitOptions;
 use svkernel::fit::meta::cells;
@@ -11,13 +11,14 @@ use svkernel::metamodel::meta::MetaModelFile;
 
 const META: &str = "data/profiles/metamodel.json";
 const KERNELS: &str = "data/kernels/eta1.5_g0.3_pencil.json";
+const WIDE: &str = "data/kernels/eta1.5_g0.3_pencil_wide.json";
 
 #[test]
 fn shipped_model_gives_valid_kernels_everywhere() {
     let f = MetaModelFile::load(Path::new(META)).unwrap();
     for class in VertexClass::ALL {
-        for d in [0.0, 1e-6, 0.05, 0.3, 1.0, 5.0, 10.0, 50.0] {
-            for a in [0.0, 1e-9, 0.2, 0.5, 0.9, 0.99, 1.0 - 1e-9, 1.0] {
+        for d in [0.0, 1e-6, 0.05, 0.3, 1.0, 5.0, 10.0, 15.0, 50.0] {
+            for a in [0.0, 1e-9, 0.1, 0.2, 0.5, 0.9, 0.99, 0.995, 1.0 - 1e-9, 1.0] {
                 for rho in [1e-3, 0.5, 1.0, 4.0, 1e3] {
                     let q = f.eval(class, d, a, rho);
                     assert!(
@@ -27,8 +28,9 @@ fn shipped_model_gives_valid_kernels_everywhere() {
                     );
                     let w: f64 = q.gmm.components.iter().map(|c| c.weight).sum();
                     assert!((w - 1.0).abs() < 1e-12);
-                    // Inside the trained box nothing is clamped.
-                    let inside = (0.1..=10.0).contains(&(d * rho)) && (0.2..=0.99).contains(&a);
+                    // Inside the trained boxes nothing is clamped: the
+                    // shipped model's and, outside it, its outer model's.
+                    let inside = (0.05..=20.0).contains(&(d * rho)) && (0.05..=0.999).contains(&a);
                     assert_eq!(q.clamped, !inside, "{class:?} d {d} α {a} ρ {rho}");
                 }
             }
@@ -72,6 +74,72 @@ fn learned_kernels_beat_the_manual_kernel_where_it_matters() {
             "{class:?}: {sum_meta} vs {sum_manual}"
         );
         assert!(wins * 10 >= n * 8, "{class:?}: meta wins {wins} of {n}");
+    }
+}
+
+#[test]
+fn the_outer_model_holds_the_wide_box() {
+    // On the wide tally's cells outside the shipped model's own box, the
+    // shipped model (its outer model answers there) against the same model
+    // without it (the queries clamp to the box's edge): the last-vertex
+    // kernel's aggregation error and the whole-plane rms s across the axis.
+    let f = MetaModelFile::load(Path::new(META)).unwrap();
+    let outer = f.outer.as_deref().expect("the shipped model carries one");
+    assert_eq!(f.alpha_range(), outer.all.alpha_range);
+    let mut clamped = f.clone();
+    clamped.outer = None;
+    let rows = |m: &MetaModelFile| {
+        svkernel::jobs::fit_kernels::check_kernels(Path::new(WIDE), m, Some(2)).unwrap()
+    };
+    let (with, without) = (rows(&f), rows(&clamped));
+    let outside = |r: &&AggregationRow| !f.all.holds(r.d, r.alpha);
+    for class in [VertexClass::All, VertexClass::Last] {
+        let pick = |rows: &[AggregationRow]| -> Vec<AggregationRow> {
+            rows.iter()
+                .filter(outside)
+                .filter(|r| r.class == class)
+                .cloned()
+                .collect()
+        };
+        let (a, b) = (pick(&with), pick(&without));
+        assert!(
+            a.len() >= 40 && a.len() == b.len(),
+            "{class:?}: {}",
+            a.len()
+        );
+        let mean = |v: &[AggregationRow]| v.iter().map(|r| r.meta).sum::<f64>() / v.len() as f64;
+        // rms s within 10 % of the vertices'.
+        let within = |v: &[AggregationRow]| {
+            v.iter()
+                .filter(|r| {
+                    let [data, meta] = r.plane.unwrap();
+                    (meta.rms_s / data.rms_s - 1.0).abs() <= 0.1
+                })
+                .count()
+        };
+        assert!(
+            mean(&a) <= mean(&b) * 1.01,
+            "{class:?}: {} against {}",
+            mean(&a),
+            mean(&b)
+        );
+        assert!(
+            within(&a) * 10 >= a.len() * 9,
+            "{class:?}: {} of {}",
+            within(&a),
+            a.len()
+        );
+        assert!(
+            within(&a) > within(&b) + 10,
+            "{class:?}: {} against {}",
+            within(&a),
+            within(&b)
+        );
+        assert!(a.iter().all(|r| r.meta < r.manual), "{class:?}");
+    }
+    // Inside the box the shipped model answers, as before.
+    for (x, y) in with.iter().zip(&without).filter(|(x, _)| !outside(x)) {
+        assert_eq!(x.meta, y.meta);
     }
 }
 

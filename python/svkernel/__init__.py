@@ -96,8 +96,9 @@ class Kernel(NamedTuple):
 
     ``weights`` (..., K) are the components' masses; ``centres`` (..., K, 2) their
     (t, s) in MFP; ``widths`` (..., K) their isotropic standard deviations in MFP;
-    ``clamped`` (...) is True where (d, albedo) lay outside the meta-model's
-    trained range and was clamped to it. Unused components have zero weight.
+    ``clamped`` (...) is True where (d, albedo) lay outside the range the
+    meta-model covers (that of its outer model, fitted over a wider box, where it
+    carries one) and was clamped to it. Unused components have zero weight.
     """
 
     weights: np.ndarray

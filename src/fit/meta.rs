@@ -847,6 +847,7 @@ pub fn fit_metamodel(
         g: doc.config.g,
         eta: doc.config.eta,
         provenance: Provenance::current(),
+        outer: None,
     };
     task.finish();
     Ok((

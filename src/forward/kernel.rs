@@ -335,6 +335,45 @@ impl CellTally {
         }
     }
 
+    /// Sums the first- and last-vertex histograms, tallied on `grid`, onto
+    /// a grid `refine` times finer than the all-vertex one (a divisor of
+    /// `grid.vertex_refine`). Exact: a path has one vertex of each of these
+    /// classes, so no path counts in two merged bins, and the squared and
+    /// cross sums add as the counts do.
+    pub fn coarsen_vertices(&mut self, grid: &PairGrid, refine: usize) -> Result<()> {
+        if refine == 0 || !grid.vertex_refine.is_multiple_of(refine) {
+            return Err(Error::param(
+                "vertex_refine",
+                format!("{refine} (the tally's is {})", grid.vertex_refine),
+                "a divisor of the tally's vertex_refine",
+            ));
+        }
+        let f = grid.vertex_refine / refine;
+        let fine = grid.for_class(VertexClass::Last);
+        let to = PairGrid {
+            vertex_refine: refine,
+            ..*grid
+        }
+        .for_class(VertexClass::Last);
+        let sum = |v: &[u128]| {
+            let mut out = vec![0; to.bins() + 1];
+            for (b, x) in v.iter().enumerate() {
+                let k = if b == fine.bins() {
+                    to.bins()
+                } else {
+                    (b / fine.nv / f) * to.nv + (b % fine.nv) / f
+                };
+                out[k] += x;
+            }
+            out
+        };
+        for class in [VertexClass::First, VertexClass::Last] {
+            let t = &mut self.classes[class.slot()];
+            (t.count, t.sq, t.cross) = (sum(&t.count), sum(&t.sq), sum(&t.cross));
+        }
+        Ok(())
+    }
+
     /// Kish's effective number of paths (Σw)²/Σw²: the analog paths that
     /// would give the same precision (`paths` for an analog walk).
     pub fn effective_paths(&self) -> f64 {
@@ -1404,6 +1443,18 @@ impl KernelDoc {
         }
     }
 
+    /// The first- and last-vertex histograms summed onto a grid `refine`
+    /// times finer than the all-vertex one ([`CellTally::coarsen_vertices`]),
+    /// for a fit with fewer bins.
+    pub fn coarsen_vertices(&mut self, refine: usize) -> Result<()> {
+        let grid = self.config.grid;
+        for cell in self.tally.cells.iter_mut().flatten() {
+            cell.coarsen_vertices(&grid, refine)?;
+        }
+        self.config.grid.vertex_refine = refine;
+        Ok(())
+    }
+
     /// The normalised histogram of cell (albedo `ia`, distance `id`).
     ///
     /// mass_b = Σ n_b / Σ n_c (fraction of the class's vertices; n_b the
@@ -1723,6 +1774,47 @@ mod tests {
             old.for_class(VertexClass::Last),
             old.for_class(VertexClass::All)
         );
+    }
+
+    #[test]
+    fn coarsened_vertex_histograms_are_the_coarser_grids_own() {
+        // Paths of 1–6 vertices anywhere in the window (and beyond it),
+        // weights 1–4: tallied on bins of λ/16 and summed onto λ/8 or λ/4,
+        // they are exactly the tallies made on those grids.
+        let mut rng = PathRng::new(5, 0);
+        let paths: Vec<(Vec<[f64; 2]>, u64)> = (0..400)
+            .map(|k| {
+                let n = 1 + k % 6;
+                let v = (0..n)
+                    .map(|_| [9.0 * rng.uniform() - 3.5, 9.0 * rng.uniform() - 4.5])
+                    .collect();
+                (v, 1 + (k % 4) as u64)
+            })
+            .collect();
+        let tally = |refine: usize| {
+            let grid = PairGrid {
+                vertex_refine: refine,
+                ..PairGrid::default()
+            };
+            let mut c = CellTally::new(&grid);
+            let mut scratch = Vec::new();
+            for (v, w) in &paths {
+                c.add_path(&grid, [1.0, 0.0], 1.0, v, *w, &mut scratch);
+            }
+            (grid, c)
+        };
+        let (grid, fine) = tally(4);
+        assert!(
+            fine.classes[VertexClass::Last.slot()].count[grid.for_class(VertexClass::Last).bins()]
+                > 0
+        );
+        for refine in [2, 1] {
+            let mut c = fine.clone();
+            c.coarsen_vertices(&grid, refine).unwrap();
+            assert_eq!(c, tally(refine).1, "refine {refine}");
+        }
+        let mut c = fine.clone();
+        assert!(c.coarsen_vertices(&grid, 3).is_err());
     }
 
     #[test]

@@ -617,13 +617,14 @@ fn range_effect(
     let r = |v: f64| (v * 1e3).round() / 1e3;
     let (lo, hi) = (r(lo), r(hi));
     // The scene medium's meta-model (`compare_scene` resolved the models).
-    let model = opts.models.meta.all.clone();
-    let trained = model.alpha_range;
+    // Its outer model's box, where it has one.
+    let model = &opts.models.meta;
+    let trained = model.alpha_range();
     let effect = range_albedo_effect(plan, opts, extension, (lo, hi), trained, r);
     // The other axis of the range: the optical pair distances the image can
     // ask for, against the trained ones (beyond, the kernel keeps the
     // normalised shape of the largest trained distance, scaled with λ).
-    let d_max = model.ln_d_range[1].exp();
+    let d_max = model.d_range()[1];
     let reach = plan.max_optical_distance;
     Ok(Some(Effect {
         detail: format!(

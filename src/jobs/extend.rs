@@ -10,19 +10,15 @@
 //! outside the main model's range ([`crate::render::svbssrdf::SvBssrdf::with_extension`]);
 //! inside it nothing changes.
 //!
-//! Distances are not extended (a decision, with its cost): the shipped
-//! tallies cover optical d ∈ [0.1, 10] MFP, and beyond 10 MFP the kernel
-//! keeps its d = 10 shape, stretched with d (the meta-model clamps ln d and
-//! says so). How much light that concerns goes like the diffusion falloff
-//! e^{−σ_tr·d}, σ_tr = √(3σ_a σ_t′): ≈ 1 % of the d = 0 level at α = 0.9,
-//! but ≈ 23 % at α = 0.99, so high-albedo, high-density scenes are where a
-//! distance extension would matter. Its cost, measured (`svkernel simulate
-//! kernels --albedos 0.9,0.99 --distances 10,16,25 --paths 1e7`, 19.5 s):
-//! contributing paths per 1e7 walks at d = 10 / 16 / 25 MFP are
-//! 18 044 / 1 767 / 40 at α = 0.9 and 284 824 / 136 695 / 39 771 at
-//! α = 0.99; the fit wants ≥ 1000 per cell, so d = 25 at α = 0.9 would take
-//! ≈ 2.5e8 walks. Not implemented: the canonical scenes reach optical
-//! d > 10 MFP only in `features` at ρ = 4 (α ≤ 0.9).
+//! The shipped model carries an outer model over α ∈ [0.05, 0.999] and
+//! d ∈ [0.05, 20] MFP ([`MetaModelFile::at`]); the range to extend is then
+//! the part of the scene's albedos outside the outer model's
+//! ([`MetaModelFile::alpha_range`]), which leaves albedos below 0.05.
+//! Distances are not extended: beyond the covered range the kernel keeps
+//! the shape of its largest distance, stretched with d (the meta-model
+//! clamps ln d and says so). How much light that concerns goes like the
+//! diffusion falloff e^{−σ_tr·d}, σ_tr = √(3σ_a σ_t′): at 20 MFP ≈ 0.01 %
+//! of the d = 0 level at α = 0.9, ≈ 5 % at α = 0.99.
 //!
 //! The basis profiles cover α ∈ [0.01, 0.999] (32 simulated albedos); a
 //! scene outside that range gets a clear clamp rather than an extension.
@@ -73,10 +69,12 @@ pub struct Extension {
 }
 
 /// The part of `scene_range` outside `trained` (the larger side if both;
-/// `None` if it lies inside).
+/// `None` if it lies inside). Above a trained range that already reaches
+/// 0.995, the largest albedo an extension simulates, an extension has
+/// nothing to add: the model clamps there.
 pub fn missing(scene_range: [f64; 2], trained: [f64; 2]) -> Option<[f64; 2]> {
     let below = scene_range[0] < trained[0];
-    let above = scene_range[1] > trained[1];
+    let above = scene_range[1] > trained[1] && trained[1] < MAX_ALBEDO;
     match (below, above) {
         (false, false) => None,
         (true, false) => Some([scene_range[0], trained[0]]),
@@ -126,7 +124,7 @@ pub fn ensure(
     cache: &Path,
     progress: bool,
 ) -> Result<(Extension, MetaModelFile)> {
-    let trained = meta.all.alpha_range;
+    let trained = meta.alpha_range();
     let albedos = albedos(missing, trained);
     let config = KernelConfig {
         albedos: albedos.clone(),
@@ -213,6 +211,11 @@ mod tests {
         assert_eq!(missing([0.15, 0.9], trained), Some([0.15, 0.2]));
         assert_eq!(missing([0.3, 0.999], trained), Some([0.99, 0.999]));
         assert_eq!(missing([0.1, 0.995], trained), Some([0.1, 0.2]));
+        // A range that reaches the largest albedo an extension simulates
+        // (an outer model's) is extended below only.
+        let wide = [0.05, 0.999];
+        assert_eq!(missing([0.1, 0.9995], wide), None);
+        assert_eq!(missing([0.02, 0.9995], wide), Some([0.02, 0.05]));
         let a = albedos([0.15, 0.2], trained);
         assert_eq!(a.len(), EXTENSION_ALBEDOS);
         assert_eq!(a[0], 0.15);

@@ -22,11 +22,27 @@ pub struct KernelReport {
     pub data_file: String,
     pub components: Components,
     pub degree: (usize, usize),
+    /// The first- and last-vertex grids' refinement the fit saw.
+    #[serde(default)]
+    pub vertex_refine: usize,
     pub joint: Vec<FitReport>,
     /// Per-cell fit reports (or the error) per class.
     pub per_cell: Vec<(String, Vec<std::result::Result<FitReport, String>>)>,
     pub aggregation: Vec<AggregationRow>,
     pub wall_s: f64,
+}
+
+/// How `svkernel fit kernels` fits ([`fit_kernels`]).
+#[derive(Clone, Debug)]
+pub struct KernelFitOptions {
+    /// Gaussian components of the all- and last-vertex kernels.
+    pub components: Components,
+    /// Polynomial degrees in ln d and √(1 − α).
+    pub degree: (usize, usize),
+    /// Fit the first- and last-vertex histograms on a grid this many times
+    /// finer than the all-vertex one, a divisor of the tally's own
+    /// ([`KernelDoc::coarsen_vertices`]); `None`: the tally's grid.
+    pub vertex_refine: Option<usize>,
 }
 
 /// Fits the meta-model (all and last vertices) to `data`, writes `out` and
@@ -35,12 +51,15 @@ pub fn fit_kernels(
     data: &Path,
     out: &Path,
     dir: &Path,
-    k: Components,
-    degree: (usize, usize),
+    opts: &KernelFitOptions,
     progress: bool,
 ) -> Result<KernelReport> {
     let start = Instant::now();
-    let doc = KernelDoc::load(data)?;
+    let (k, degree) = (opts.components, opts.degree);
+    let mut doc = KernelDoc::load(data)?;
+    if let Some(r) = opts.vertex_refine {
+        doc.coarsen_vertices(r)?;
+    }
     if doc.config.density != 1.0 {
         return Err(Error::format(
             data,
@@ -55,6 +74,7 @@ pub fn fit_kernels(
         data_file: data.display().to_string(),
         components: k,
         degree,
+        vertex_refine: doc.config.grid.vertex_refine,
         joint: fit.joint,
         per_cell: fit.per_cell,
         aggregation: fit.aggregation,
@@ -63,12 +83,54 @@ pub fn fit_kernels(
     crate::jobs::store::write_json_atomic(&dir.join("report.json"), &report)?;
     crate::jobs::store::write_atomic(
         &dir.join("aggregation.md"),
-        aggregation_table(&report.aggregation).as_bytes(),
+        aggregation_table(&report.aggregation, true).as_bytes(),
     )?;
     crate::progress::step(progress, "drawing the kernel plots", || {
         kernel_plots(&doc, &file, &report.aggregation, dir)
     })?;
     Ok(report)
+}
+
+/// `svkernel fit outer`: writes to `out` the meta-model of `model` carrying
+/// the one of `outer`, a fit over a wider box, for the queries outside its
+/// own box ([`MetaModelFile::at`]). An outer model that does not hold the
+/// box, or has one of its own, or is for another medium, is an error naming
+/// `outer`; `model`'s own outer model, if any, is replaced.
+pub fn attach_outer(model: &Path, outer: &Path, out: &Path) -> Result<MetaModelFile> {
+    let mut file = MetaModelFile::load(model)?;
+    let wide = MetaModelFile::load(outer)?;
+    file.outer = Some(Box::new(wide));
+    crate::doc::Document::validate(&file, outer)?;
+    crate::jobs::store::write_json_atomic(out, &file)?;
+    Ok(file)
+}
+
+/// `svkernel fit check-kernels`: the aggregation errors and whole-plane
+/// moments of the meta-model `model` against the kernel tally `data`, per
+/// cell of at least [`crate::fit::meta::MIN_PATHS`] effective paths,
+/// without fitting. Each cell is answered as the renderer asks
+/// ([`MetaModelFile::eval`]): by the model's outer one outside its box.
+/// `vertex_refine` sums the tally's vertex histograms first, as in
+/// [`KernelFitOptions::vertex_refine`].
+pub fn check_kernels(
+    data: &Path,
+    model: &MetaModelFile,
+    vertex_refine: Option<usize>,
+) -> Result<Vec<AggregationRow>> {
+    let mut doc = KernelDoc::load(data)?;
+    if let Some(r) = vertex_refine {
+        doc.coarsen_vertices(r)?;
+    }
+    use rayon::prelude::*;
+    let mut rows = Vec::new();
+    for class in [VertexClass::All, VertexClass::Last] {
+        let cells = crate::fit::meta::cells(&doc, class);
+        rows.par_extend(cells.par_iter().map(|c| {
+            let q = model.eval(class, c.d, c.alpha, 1.0);
+            crate::fit::aggregation::aggregation_row(class, c, None, &q.gmm)
+        }));
+    }
+    Ok(rows)
 }
 
 /// Per vertex class: cells, the mean and worst aggregation error of the
@@ -164,7 +226,9 @@ pub fn moment_within(d: f64, data: &PlaneMoments, meta: &PlaneMoments, se: [f64;
 /// The aggregation-error table as Markdown (α_t errors in albedo units),
 /// with the window's share of the vertices and the whole-plane moments
 /// (mean t, rms s in MFP) of the measured vertices and of the meta-model.
-pub fn aggregation_table(rows: &[AggregationRow]) -> String {
+/// A row without a per-configuration GMM shows "failed" after a fit
+/// (`fitted`) and "—" after [`check_kernels`], which fits none.
+pub fn aggregation_table(rows: &[AggregationRow], fitted: bool) -> String {
     let mut s = String::from(
         "| vertices | α | d | paths | per-config GMM | meta-model | manual | histogram noise | window holds | mean t data / meta | rms s data / meta |\n|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
@@ -186,7 +250,10 @@ pub fn aggregation_table(rows: &[AggregationRow]) -> String {
             r.alpha,
             r.d,
             r.paths,
-            r.per_config.map_or("failed".into(), |v| format!("{v:.4}")),
+            r.per_config
+                .map_or(if fitted { "failed" } else { "—" }.into(), |v| format!(
+                    "{v:.4}"
+                )),
             r.meta,
             r.manual,
             r.noise,

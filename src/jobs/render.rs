@@ -530,7 +530,7 @@ pub fn render_scene(scene: &Scene, opts: &RenderOptions) -> Result<Vec<Pass>> {
     // for a homogeneous material, whose every method is the profile).
     let (extension, extension_model) = match (&meta, &opts.cache) {
         (Some(m), Some(cache)) if !plan.homogeneous => {
-            match extend::missing(plan.albedo_range, m.all.alpha_range) {
+            match extend::missing(plan.albedo_range, m.alpha_range()) {
                 Some(missing) => {
                     let (done, model) =
                         extend::ensure(m, &models.training, missing, cache, opts.run.progress)?;

@@ -22,8 +22,10 @@
 //! sqrt(1 − α) is the albedo coordinate of diffusion theory (σ_tr/σ_t ∝
 //! sqrt(1 − α)), the same as the basis BSSRDF's. Polynomials (rather than
 //! splines) keep evaluation to a few dozen multiply-adds and are globally
-//! smooth; outside the trained box the inputs are clamped to its edge
-//! (`clamped` is reported). Inside the box, cells with too few contributing
+//! smooth. Outside the trained box, a file that carries an outer model
+//! (fitted over a wider box) hands the query to it
+//! ([`MetaModelFile::at`]); beyond every box the inputs are clamped to the
+//! edge (`clamped` is reported). Inside the box, cells with too few contributing
 //! paths to fit ([`crate::fit::meta::MIN_PATHS`]: the low-albedo corners)
 //! have no data, and there the polynomials extrapolate from their
 //! neighbours (docs/method.md §4, "Where the meta-model has no data").
@@ -85,6 +87,8 @@ struct Prepared {
     x_offset: f64,
     y_scale: f64,
     y_offset: f64,
+    /// The trained range of d (e^ln_d_range), for [`MetaModel::holds`].
+    d_range: [f64; 2],
 }
 
 impl PartialEq for MetaModel {
@@ -173,6 +177,15 @@ impl MetaModel {
         ([xc, yc], (xc - x).abs() > 1e-12 || (yc - y).abs() > 1e-12)
     }
 
+    /// Whether optical distance `d1` (MFP at unit density) and `alpha`
+    /// lie in the trained box (its edges included).
+    #[inline]
+    pub fn holds(&self, d1: f64, alpha: f64) -> bool {
+        let p = self.prepared();
+        (p.d_range[0]..=p.d_range[1]).contains(&d1)
+            && (self.alpha_range[0]..=self.alpha_range[1]).contains(&alpha)
+    }
+
     fn prepared(&self) -> &Prepared {
         self.prepared.get_or_init(|| {
             let [l0, l1] = self.ln_d_range;
@@ -186,6 +199,8 @@ impl MetaModel {
                 x_offset: -2.0 * l0 / (l1 - l0) - 1.0,
                 y_scale: 2.0 / (yb - ya),
                 y_offset: -2.0 * ya / (yb - ya) - 1.0,
+                // Rounding of e^ln(d) does not move the edges out.
+                d_range: [l0.exp() * (1.0 - 1e-12), l1.exp() * (1.0 + 1e-12)],
             }
         })
     }
@@ -363,9 +378,38 @@ pub struct MetaModelFile {
     pub g: f64,
     pub eta: f64,
     pub provenance: Provenance,
+    /// A model of a wider box, which answers the queries that fall outside
+    /// this one's ([`Self::at`]); its box holds this one's, and it has no
+    /// outer model of its own.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub outer: Option<Box<MetaModelFile>>,
 }
 
 impl MetaModelFile {
+    /// The model that answers a query at optical distance `d1` (MFP at
+    /// unit density) and albedo `alpha`: this one inside its all-vertex
+    /// box, else its outer model if it has one (which clamps to its own,
+    /// wider box).
+    #[inline]
+    pub fn at(&self, d1: f64, alpha: f64) -> &MetaModelFile {
+        match &self.outer {
+            Some(o) if !self.all.holds(d1, alpha) => o,
+            _ => self,
+        }
+    }
+
+    /// The albedos covered: the outer model's range if there is one.
+    pub fn alpha_range(&self) -> [f64; 2] {
+        self.outer.as_deref().unwrap_or(self).all.alpha_range
+    }
+
+    /// The optical distances covered (MFP at unit density): the outer
+    /// model's range if there is one.
+    pub fn d_range(&self) -> [f64; 2] {
+        let [l0, l1] = self.outer.as_deref().unwrap_or(self).all.ln_d_range;
+        [l0.exp(), l1.exp()]
+    }
+
     /// The kernel of `class` at pair distance `d` (MFP), albedo `alpha`
     /// and density `rho`: a Gaussian mixture in the pair frame (t from x_i
     /// toward x_e, s across, MFP), and whether (d, α) was clamped to the
@@ -384,12 +428,13 @@ impl MetaModelFile {
     /// # Ok::<(), svkernel::Error>(())
     /// ```
     pub fn eval(&self, class: VertexClass, d: f64, alpha: f64, rho: f64) -> KernelQuery {
-        match (class, &self.first) {
-            (VertexClass::All, _) => self.all.eval(d, alpha, rho),
-            (VertexClass::Last, _) => self.last.eval(d, alpha, rho),
-            (VertexClass::First, Some(m)) => m.eval(d, alpha, rho),
+        let m = self.at(optical_distance(d, rho), alpha);
+        match (class, &m.first) {
+            (VertexClass::All, _) => m.all.eval(d, alpha, rho),
+            (VertexClass::Last, _) => m.last.eval(d, alpha, rho),
+            (VertexClass::First, Some(f)) => f.eval(d, alpha, rho),
             (VertexClass::First, None) => {
-                let (_, clamped) = self.all.coordinates(d * rho, alpha);
+                let (_, clamped) = m.all.coordinates(d * rho, alpha);
                 KernelQuery {
                     gmm: Gmm {
                         components: vec![Component {
@@ -417,6 +462,37 @@ impl crate::doc::Document for MetaModelFile {
             m.check(path, "first")?;
         }
         f.last.check(path, "last")?;
+        if let Some(o) = &f.outer {
+            let bad = |msg: String| Err(Error::format(path, "outer", msg));
+            if o.outer.is_some() {
+                return bad("an outer model has no outer model of its own".into());
+            }
+            if (o.g - f.g).abs() > 1e-12 || (o.eta - f.eta).abs() > 1e-12 {
+                return bad(format!(
+                    "trained for g = {}, η = {}, but the model for g = {}, η = {}",
+                    o.g, o.eta, f.g, f.eta
+                ));
+            }
+            for (name, inner, outer) in [("all", &f.all, &o.all), ("last", &f.last, &o.last)] {
+                let holds = |a: [f64; 2], b: [f64; 2]| b[0] <= a[0] + 1e-12 && a[1] <= b[1] + 1e-12;
+                if !holds(inner.ln_d_range, outer.ln_d_range)
+                    || !holds(inner.alpha_range, outer.alpha_range)
+                {
+                    return bad(format!(
+                        "its {name}-vertex box (d ∈ {:?} MFP, α ∈ {:?}) does not hold the model's \
+                         (d ∈ {:?}, α ∈ {:?})",
+                        outer.ln_d_range.map(f64::exp),
+                        outer.alpha_range,
+                        inner.ln_d_range.map(f64::exp),
+                        inner.alpha_range
+                    ));
+                }
+            }
+            o.validate(path).map_err(|e| match e {
+                Error::Format { key, msg, .. } => Error::format(path, format!("outer.{key}"), msg),
+                e => e,
+            })?;
+        }
         Ok(())
     }
 }
@@ -461,6 +537,87 @@ mod tests {
                 }
             }
         }
+    }
+
+    fn file(all: MetaModel, last: MetaModel) -> MetaModelFile {
+        MetaModelFile {
+            format: META_FORMAT.into(),
+            version: META_VERSION,
+            all,
+            first: None,
+            last,
+            g: 0.3,
+            eta: 1.5,
+            provenance: Provenance::current(),
+            outer: None,
+        }
+    }
+
+    #[test]
+    fn the_outer_model_answers_outside_the_box_only() {
+        use crate::doc::Document;
+        let wide = |mut m: MetaModel| {
+            m.ln_d_range = [0.05f64.ln(), 20f64.ln()];
+            m.alpha_range = [0.05, 0.999];
+            for c in m.coeffs.iter_mut().flatten() {
+                *c = -*c;
+            }
+            m
+        };
+        let mut f = file(model(3), model(4));
+        f.outer = Some(Box::new(file(wide(model(3)), wide(model(4)))));
+        let path = Path::new("m.json");
+        f.validate(path).unwrap();
+        assert_eq!(f.alpha_range(), [0.05, 0.999]);
+        assert!((f.d_range()[1] - 20.0).abs() < 1e-9);
+        let outer = f.outer.as_deref().unwrap();
+        for (d, a, rho, inside) in [
+            (1.0, 0.5, 1.0, true),
+            (10.0, 0.99, 1.0, true),
+            (0.1, 0.2, 1.0, true),
+            // The optical distance decides: 6 MFP at ρ = 2 is 12.
+            (6.0, 0.5, 2.0, false),
+            (15.0, 0.5, 1.0, false),
+            (0.07, 0.5, 1.0, false),
+            (1.0, 0.1, 1.0, false),
+            (1.0, 0.995, 1.0, false),
+            // Beyond both boxes, the outer one clamps.
+            (50.0, 0.9999, 1.0, false),
+        ] {
+            let want = if inside { &f } else { outer };
+            assert!(std::ptr::eq(f.at(d * rho, a), want), "{d} {a} {rho}");
+            for class in [VertexClass::All, VertexClass::Last] {
+                let m = |x: &MetaModelFile| match class {
+                    VertexClass::All => x.all.eval(d, a, rho),
+                    _ => x.last.eval(d, a, rho),
+                };
+                assert_eq!(f.eval(class, d, a, rho), m(want), "{d} {a} {rho}");
+                assert_ne!(m(&f).gmm, m(outer).gmm, "the two models differ");
+            }
+        }
+        // An outer model that does not hold the box, or has its own outer
+        // model, or another medium, is refused with the key named.
+        let key = |f: &MetaModelFile| match f.validate(path) {
+            Err(Error::Format { key, .. }) => key,
+            other => panic!("{other:?}"),
+        };
+        let mut narrow = f.clone();
+        narrow.outer.as_mut().unwrap().last.alpha_range = [0.3, 0.999];
+        assert_eq!(key(&narrow), "outer");
+        let mut nested = f.clone();
+        nested.outer.as_mut().unwrap().outer = Some(Box::new(file(model(3), model(4))));
+        assert_eq!(key(&nested), "outer");
+        let mut medium = f.clone();
+        medium.outer.as_mut().unwrap().g = 0.0;
+        assert_eq!(key(&medium), "outer");
+        let mut broken = f.clone();
+        broken.outer.as_mut().unwrap().all.coeffs[0][0] = f64::NAN;
+        assert_eq!(key(&broken), "outer.models.all.coeffs");
+        // It round-trips through JSON; a file without one reads as before.
+        let text = serde_json::to_string(&f).unwrap();
+        assert_eq!(serde_json::from_str::<MetaModelFile>(&text).unwrap(), f);
+        let plain = serde_json::to_string(&file(model(3), model(4))).unwrap();
+        assert!(!plain.contains("\"outer\""), "{plain}");
     }
 
     #[test]

@@ -1435,15 +1435,18 @@ impl SvBssrdf {
         self
     }
 
-    /// The meta-model for kernel queries at albedo `alpha0`: the extension
-    /// outside the main model's albedo range, if there is one.
+    /// The meta-model for kernel queries at albedo `alpha0` and optical
+    /// distance `d1` (MFP at unit density): the extension outside the main
+    /// model's albedo range (its outer model's, if it has one), if there is
+    /// an extension; else the main model or its outer one
+    /// ([`MetaModelFile::at`]).
     #[inline]
-    fn meta_for(&self, alpha0: f64) -> Option<&MetaModelFile> {
+    fn meta_for(&self, alpha0: f64, d1: f64) -> Option<&MetaModelFile> {
         let main = self.meta.as_deref()?;
-        let [lo, hi] = main.all.alpha_range;
+        let [lo, hi] = main.alpha_range();
         match &self.extension {
             Some(ext) if !(lo..=hi).contains(&alpha0) => Some(ext),
-            _ => Some(main),
+            _ => Some(main.at(d1, alpha0)),
         }
     }
 
@@ -1538,7 +1541,7 @@ impl SvBssrdf {
         // ρ₀) as the first all-vertex kernel: all of them are evaluated
         // before any aggregation, so that their independent chains overlap.
         let vertex = match (self.variant.vertex_kernels, self.method) {
-            (true, Method::Learned) => self.meta_for(a0),
+            (true, Method::Learned) => self.meta_for(a0, d * rho0),
             _ => None,
         };
         self.kernels(vertex, d, a0, rho0, warp.as_ref(), scratch);
@@ -1883,7 +1886,7 @@ impl SvBssrdf {
     /// the optical distance ρ₀d with lengths divided by ρ₀ (the density law).
     #[inline]
     fn all_kernel(&self, d: f64, alpha0: f64, rho0: f64, out: &mut Gmm) {
-        match (self.method, self.meta_for(alpha0)) {
+        match (self.method, self.meta_for(alpha0, d * rho0)) {
             (Method::Learned, Some(meta)) => {
                 meta.all.eval_into(d, alpha0, rho0, out);
             }
@@ -3239,6 +3242,76 @@ mod tests {
             assert!((got - want).abs() <= 1e-12, "{got} vs {want}");
             assert!((want - 1.0).abs() > 1e-3, "the query moves l_e: {want}");
         }
+    }
+
+    #[test]
+    fn learned_hands_queries_outside_the_box_to_the_outer_model() {
+        let (_, t) = basis();
+        // The shipped model alone, and another model over a wider box:
+        // the shipped coefficients spread over d ∈ [0.05, 20] MFP and
+        // α ∈ [0.05, 0.999] give other kernels.
+        let mut inner = crate::testing::shipped_meta();
+        inner.outer = None;
+        let mut wide = inner.clone();
+        for m in [&mut wide.all, &mut wide.last] {
+            *m = crate::metamodel::meta::MetaModel::new(
+                m.k,
+                (m.deg_x, m.deg_y),
+                [0.05f64.ln(), 20f64.ln()],
+                [0.05, 0.999],
+                m.coeffs.clone(),
+            );
+        }
+        let mut both = inner.clone();
+        both.outer = Some(Box::new(wide.clone()));
+        let n = 64;
+        let checker = (0..n * n)
+            .map(|k: usize| {
+                if (k / n / 3 + k % n / 3).is_multiple_of(2) {
+                    0.5
+                } else {
+                    0.996
+                }
+            })
+            .collect();
+        let albedo = TexelMap::new(n, n, 0.25, checker).unwrap();
+        let over = |meta: &MetaModelFile, rho: f64| {
+            SvBssrdf::new(
+                Method::Learned,
+                Variant::default(),
+                t.clone(),
+                Some(Arc::new(meta.clone())),
+                vec![albedo.clone()],
+                Density::Constant(rho),
+            )
+            .unwrap()
+        };
+        let mut scratch = Scratch::default();
+        let mut seen = [0; 2];
+        for rho in [1.0, 2.0] {
+            let [inner, both, wide] = [&inner, &both, &wide].map(|m| over(m, rho));
+            let a = |x: [f64; 2]| inner.albedo_at(0, x[0], x[1]);
+            for (xi, xe) in [
+                ([-1.0f64, 0.3], [1.2f64, -0.4]),
+                ([-6.0, 0.2], [1.5, 0.7]),
+                ([0.2, 0.1], [0.23, 0.12]),
+                ([-7.2, -7.3], [-6.2, -7.0]),
+            ] {
+                let d = (xe[0] - xi[0]).hypot(xe[1] - xi[1]);
+                let a0 = 0.5 * (a(xi) + a(xe));
+                let inside = inner.meta.as_deref().unwrap().all.holds(rho * d, a0);
+                let [s_inner, s_both, s_wide] =
+                    [&inner, &both, &wide].map(|m| m.eval(0, xi, xe, &mut scratch));
+                let want = if inside { s_inner } else { s_wide };
+                assert_eq!(s_both, want, "ρ = {rho}, d = {d}, α₀ = {a0}");
+                assert_ne!(s_inner, s_wide, "ρ = {rho}, d = {d}: the models differ");
+                seen[inside as usize] += 1;
+            }
+        }
+        assert!(
+            seen[0] >= 3 && seen[1] >= 2,
+            "pairs outside / inside: {seen:?}"
+        );
     }
 
     /// The warp ([`DensityKernel::Warp`]) across a density step 1 | 4 at
