@@ -753,6 +753,65 @@ fn missing_albedo_range_is_simulated_once_and_cached() {
     std::fs::remove_dir_all(&d).unwrap();
 }
 
+#[test]
+fn fit_outer_and_check_kernels_refuse_bad_input() {
+    let d = tmpdir("outer");
+    let run = |args: &[&str]| {
+        let o = bin().args(args).output().unwrap();
+        (
+            o.status.success(),
+            String::from_utf8_lossy(&o.stdout).into_owned(),
+            String::from_utf8_lossy(&o.stderr).into_owned(),
+        )
+    };
+    let shipped = "data/profiles/metamodel.json";
+    let wide = "data/profiles/metamodel_wide.json";
+    // The shipped model's own box inside the wide one: accepted, and the
+    // written file covers the wide box.
+    let out = d.join("m.json");
+    let (ok, text, err) = run(&[
+        "fit",
+        "outer",
+        "--model",
+        shipped,
+        "--outer",
+        wide,
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    assert!(text.contains("α ∈ [0.05, 0.999]"), "{text}");
+    // The other way round, the outer box does not hold the model's: an
+    // error that names the file and the key, and nothing written.
+    let bad = d.join("bad.json");
+    let (ok, _, err) = run(&[
+        "fit",
+        "outer",
+        "--model",
+        wide,
+        "--outer",
+        shipped,
+        "--out",
+        bad.to_str().unwrap(),
+    ]);
+    assert!(
+        !ok && err.contains("metamodel.json") && err.contains("outer"),
+        "{err}"
+    );
+    assert!(!bad.exists());
+    // A refinement that does not divide the tally's.
+    let (ok, _, err) = run(&[
+        "fit",
+        "check-kernels",
+        "--model",
+        shipped,
+        "--vertex-refine",
+        "3",
+    ]);
+    assert!(!ok && err.contains("vertex_refine"), "{err}");
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
 /// A closed stdout (`svkernel profile … | head -1`) ends the program
 /// quietly: no panic message on stderr.
 #[cfg(unix)]

@@ -413,7 +413,8 @@ impl MetaModelFile {
     /// The kernel of `class` at pair distance `d` (MFP), albedo `alpha`
     /// and density `rho`: a Gaussian mixture in the pair frame (t from x_i
     /// toward x_e, s across, MFP), and whether (d, α) was clamped to the
-    /// trained range.
+    /// trained range: this model's, or outside it its outer model's
+    /// ([`Self::at`]).
     ///
     /// ```
     /// use svkernel::prelude::*;
