@@ -766,34 +766,22 @@ fn fit_outer_and_check_kernels_refuse_bad_input() {
     };
     let shipped = "data/profiles/metamodel.json";
     let wide = "data/profiles/metamodel_wide.json";
+    let fit_outer = |model: &str, outer: &str, out: &Path| {
+        let out = out.to_str().unwrap();
+        run(&[
+            "fit", "outer", "--model", model, "--outer", outer, "--out", out,
+        ])
+    };
     // The shipped model's own box inside the wide one: accepted, and the
     // written file covers the wide box.
     let out = d.join("m.json");
-    let (ok, text, err) = run(&[
-        "fit",
-        "outer",
-        "--model",
-        shipped,
-        "--outer",
-        wide,
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let (ok, text, err) = fit_outer(shipped, wide, &out);
     assert!(ok, "{err}");
     assert!(text.contains("α ∈ [0.05, 0.999]"), "{text}");
     // The other way round, the outer box does not hold the model's: an
     // error that names the file and the key, and nothing written.
     let bad = d.join("bad.json");
-    let (ok, _, err) = run(&[
-        "fit",
-        "outer",
-        "--model",
-        wide,
-        "--outer",
-        shipped,
-        "--out",
-        bad.to_str().unwrap(),
-    ]);
+    let (ok, _, err) = fit_outer(wide, shipped, &bad);
     assert!(
         !ok && err.contains("metamodel.json") && err.contains("outer"),
         "{err}"

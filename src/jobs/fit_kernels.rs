@@ -56,10 +56,7 @@ pub fn fit_kernels(
 ) -> Result<KernelReport> {
     let start = Instant::now();
     let (k, degree) = (opts.components, opts.degree);
-    let mut doc = KernelDoc::load(data)?;
-    if let Some(r) = opts.vertex_refine {
-        doc.coarsen_vertices(r)?;
-    }
+    let doc = load_tally(data, opts.vertex_refine)?;
     if doc.config.density != 1.0 {
         return Err(Error::format(
             data,
@@ -91,6 +88,16 @@ pub fn fit_kernels(
     Ok(report)
 }
 
+/// The kernel tally `data`, its first- and last-vertex histograms summed
+/// onto `vertex_refine` ([`KernelDoc::coarsen_vertices`]) if given.
+fn load_tally(data: &Path, vertex_refine: Option<usize>) -> Result<KernelDoc> {
+    let mut doc = KernelDoc::load(data)?;
+    if let Some(r) = vertex_refine {
+        doc.coarsen_vertices(r)?;
+    }
+    Ok(doc)
+}
+
 /// `svkernel fit outer`: writes to `out` the meta-model of `model` carrying
 /// the one of `outer`, a fit over a wider box, for the queries outside its
 /// own box ([`MetaModelFile::at`]). An outer model that does not hold the
@@ -117,10 +124,7 @@ pub fn check_kernels(
     model: &MetaModelFile,
     vertex_refine: Option<usize>,
 ) -> Result<Vec<AggregationRow>> {
-    let mut doc = KernelDoc::load(data)?;
-    if let Some(r) = vertex_refine {
-        doc.coarsen_vertices(r)?;
-    }
+    let doc = load_tally(data, vertex_refine)?;
     use rayon::prelude::*;
     let mut rows = Vec::new();
     for class in [VertexClass::All, VertexClass::Last] {

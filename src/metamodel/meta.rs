@@ -398,16 +398,20 @@ impl MetaModelFile {
         }
     }
 
+    /// The model of the widest box: the outer one if there is one.
+    fn widest(&self) -> &MetaModelFile {
+        self.outer.as_deref().unwrap_or(self)
+    }
+
     /// The albedos covered: the outer model's range if there is one.
     pub fn alpha_range(&self) -> [f64; 2] {
-        self.outer.as_deref().unwrap_or(self).all.alpha_range
+        self.widest().all.alpha_range
     }
 
     /// The optical distances covered (MFP at unit density): the outer
     /// model's range if there is one.
     pub fn d_range(&self) -> [f64; 2] {
-        let [l0, l1] = self.outer.as_deref().unwrap_or(self).all.ln_d_range;
-        [l0.exp(), l1.exp()]
+        self.widest().all.ln_d_range.map(f64::exp)
     }
 
     /// The kernel of `class` at pair distance `d` (MFP), albedo `alpha`
