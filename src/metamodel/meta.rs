@@ -433,13 +433,14 @@ impl MetaModelFile {
     /// # Ok::<(), svkernel::Error>(())
     /// ```
     pub fn eval(&self, class: VertexClass, d: f64, alpha: f64, rho: f64) -> KernelQuery {
-        let m = self.at(optical_distance(d, rho), alpha);
+        let d1 = optical_distance(d, rho);
+        let m = self.at(d1, alpha);
         match (class, &m.first) {
             (VertexClass::All, _) => m.all.eval(d, alpha, rho),
             (VertexClass::Last, _) => m.last.eval(d, alpha, rho),
             (VertexClass::First, Some(f)) => f.eval(d, alpha, rho),
             (VertexClass::First, None) => {
-                let (_, clamped) = m.all.coordinates(d * rho, alpha);
+                let (_, clamped) = m.all.coordinates(d1, alpha);
                 KernelQuery {
                     gmm: Gmm {
                         components: vec![Component {
