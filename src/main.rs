@@ -933,6 +933,11 @@ struct KernelArgs {
     /// each sized from the tally so far for the cells still short.
     #[arg(long, default_value_t = 3)]
     top_ups: usize,
+    /// With --min-paths: also offer the pilots exponential transforms with
+    /// angular biasing at these fractions of the albedo's bias bound (e.g.
+    /// 0.9,0.97), for far cells at low albedo.
+    #[arg(long, value_delimiter = ',')]
+    angular: Vec<f64>,
     /// With --min-paths: top up this finished tally instead of planning a
     /// new one. Its configuration (medium, cells, grid, seed and runs) and
     /// paths are kept, and only the cells below --min-paths get more paths,
@@ -1055,6 +1060,7 @@ fn simulate_kernels(a: KernelArgs) -> Result<()> {
             let plan = kernel::PlanOptions {
                 target,
                 max_paths: a.run.paths,
+                angular_fractions: a.angular.clone(),
                 ..Default::default()
             };
             let (planned, cells) = config.plan(&plan, opts.progress)?;
@@ -1180,7 +1186,7 @@ fn run_with_top_ups(
 fn print_plan(config: &KernelConfig, cells: &[kernel::PlannedCell]) {
     use std::io::Write;
     let mut text = format!(
-        "plan: {} runs, {:.3e} paths\n   α        d   stretch  bias forced   pilot paths → contributing   expected effective   run paths\n",
+        "plan: {} runs, {:.3e} paths\n   α        d   stretch  bias forced angular   pilot paths → contributing   expected effective   run paths\n",
         config.runs.len(),
         config.paths as f64
     );
@@ -1192,12 +1198,13 @@ fn print_plan(config: &KernelConfig, cells: &[kernel::PlannedCell]) {
             .zip(config.distances.iter().position(|&d| d == c.d))
             .map_or(0, |(ia, id)| config.launched_for(ia, id));
         text += &format!(
-            "{:6.4} {:8.3} {:9.3} {:5.2} {:6} {:13} → {:12} {:20.0} {:11.3e}\n",
+            "{:6.4} {:8.3} {:9.3} {:5.2} {:6} {:7} {:13} → {:12} {:20.0} {:11.3e}\n",
             c.albedo,
             c.d,
             c.flights.stretch,
             c.flights.bias,
             c.flights.forced,
+            if c.flights.angular { "yes" } else { "no" },
             c.pilot_paths,
             c.pilot_contributing,
             c.expected,

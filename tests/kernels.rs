@@ -9,7 +9,7 @@ use svkernel::forward::medium::{Medium, Source};
 use svkernel::forward::rng::{PathRng, threshold_u32};
 use svkernel::forward::runner::{RunOptions, Shard, Tally, shard_range};
 use svkernel::forward::walk::{
-    AlbedoField, Fate, Flights, launch, max_bias, max_stretch_offset, walk_general,
+    AlbedoField, AngularBias, Fate, Flights, launch, max_bias, max_stretch_offset, walk_general,
 };
 use svkernel::provenance::Provenance;
 use svkernel::testing::Z_MC;
@@ -112,6 +112,7 @@ fn planned_runs_are_bitwise_identical_for_threads_and_shards() {
         stretch: 0.8,
         bias: 0.5,
         forced: 1,
+        angular: false,
     };
     let c = transformed(
         &config(&[0.3, 0.8], &[0.5, 3.0], 1.0, 1, 5),
@@ -132,21 +133,42 @@ fn planned_runs_are_bitwise_identical_for_threads_and_shards() {
 #[test]
 fn stretched_flights_are_unbiased() {
     // The weighted histograms of walks with stretched, shortened and
-    // outward-biased flights against the analog walk's, bin by bin (χ² with
-    // both errors), and their whole-plane moments.
+    // outward-biased flights (the last with biased directions too) against
+    // the analog walk's, bin by bin (χ² with both errors), their levels and
+    // their whole-plane moments.
     let analog = config(&[0.7], &[0.6, 2.5], 1.0, 600_000, 31);
     let da = doc(&analog, None);
-    for (stretch, bias, forced, seed) in [(0.7, 0.0, 0, 32), (1.4, 0.0, 0, 33), (1.0, 0.6, 2, 34)] {
+    for (stretch, bias, forced, angular, seed) in [
+        (0.7, 0.0, 0, false, 32),
+        (1.4, 0.0, 0, false, 33),
+        (1.0, 0.6, 2, false, 34),
+        (1.0, 0.5, 0, true, 35),
+    ] {
         let flights = Flights {
             stretch,
             bias,
             forced,
+            angular,
         };
         let c = transformed(&config(&[0.7], &[0.6, 2.5], 1.0, 1, seed), flights, 600_000);
         let db = doc(&c, None);
         for id in 0..2 {
             let n_eff = db.tally.cells[0][id].effective_paths();
             assert!(n_eff > 300.0, "{flights:?} d {id}: {n_eff}");
+            // The cell's level: contributing weight per launched path (the
+            // transformed run's weights in units of 2⁻²⁰), within Z_MC of
+            // both standard errors.
+            let level = |cell: &svkernel::forward::kernel::CellTally, unit: f64, n: f64| {
+                let m = cell.weight as f64 / unit / n;
+                let m2 = cell.weight_sq as f64 / (unit * unit) / n;
+                (m, ((m2 - m * m).max(0.0) / n).sqrt())
+            };
+            let (la, ea) = level(&da.tally.cells[0][id], 1.0, 600_000.0);
+            let (lb, eb) = level(&db.tally.cells[0][id], 2f64.powi(20), 600_000.0);
+            assert!(
+                (la - lb).abs() < Z_MC * ea.hypot(eb),
+                "{flights:?} d {id}: level {lb} against {la} (errors {eb}, {ea})"
+            );
             for class in VertexClass::ALL {
                 let (ha, hb) = (da.histogram(0, id, class), db.histogram(0, id, class));
                 let (c2, n) = chi2(&ha, &hb);
@@ -232,6 +254,7 @@ fn a_plan_walks_no_exponential_transform_beyond_its_bound() {
         stretch: 1.0,
         bias: 0.93,
         forced: 2,
+        angular: false,
     };
     assert!(!strong.bounded_weights(0.75, 0.3) && strong.bounded_weights(0.2, 0.3));
     let c = config(&[0.75], &[1.0, 6.5], 1.0, 1, 43);
@@ -242,6 +265,7 @@ fn a_plan_walks_no_exponential_transform_beyond_its_bound() {
         flights: vec![Flights::ANALOG, strong],
         bias_fractions: vec![0.6],
         stretch_fractions: Vec::new(),
+        angular_fractions: Vec::new(),
     };
     let (planned, cells) = c.plan(&opts, false).unwrap();
     assert_eq!(cells.len(), 2);
@@ -288,6 +312,7 @@ fn a_plan_walks_no_stretch_beyond_its_bound() {
         stretch: 2.0,
         bias: 0.0,
         forced: 0,
+        angular: false,
     };
     let mild = Flights {
         stretch: 1.2,
@@ -305,6 +330,7 @@ fn a_plan_walks_no_stretch_beyond_its_bound() {
         flights: vec![Flights::ANALOG, twice],
         bias_fractions: Vec::new(),
         stretch_fractions: vec![0.6],
+        angular_fractions: Vec::new(),
     };
     let (planned, cells) = cfg.plan(&opts, false).unwrap();
     assert_eq!(cells.len(), 2);
@@ -751,4 +777,133 @@ fn every_tracking_agrees_with_regular_tracking() {
             "{name}: mean r {m0} ± {f0} vs {m} ± {f}"
         );
     }
+}
+
+/// The normalization of the angularly biased direction density,
+/// N(ν) = ∫ p_HG(ω·ω′)/(1 − βω′·e) dω′, against a direct quadrature over
+/// the sphere (cos θ′ about ω by Gauss-free midpoints, φ′ uniform), and its
+/// closed form artanh(β)/β at g = 0.
+#[test]
+fn the_angular_bias_normalization_matches_quadrature() {
+    use std::f64::consts::PI;
+    let hg = |g: f64, c: f64| (1.0 - g * g) / (4.0 * PI * (1.0 + g * g - 2.0 * g * c).powf(1.5));
+    for beta in [0.2, 0.6, 0.9, 0.985] {
+        let iso = AngularBias::new(beta, 0.0);
+        for nu in [-1.0, -0.3, 0.0, 0.5, 1.0] {
+            let n = iso.norm(nu);
+            let exact = beta.atanh() / beta;
+            assert!(
+                (n / exact - 1.0).abs() < 1e-12,
+                "β {beta} ν {nu}: {n} against {exact}"
+            );
+        }
+        for g in [0.3, -0.5, 0.8] {
+            let bias = AngularBias::new(beta, g);
+            for nu in [-1.0f64, -0.6, 0.0, 0.4, 0.95, 1.0] {
+                // ω in the (e, z) plane at cos ν to e; ω′ by (cos θ′, φ′) about it.
+                let (nt, mphi) = (4000, 720);
+                let s_nu = (1.0 - nu * nu).max(0.0).sqrt();
+                let mut sum = 0.0;
+                for i in 0..nt {
+                    let c = -1.0 + (i as f64 + 0.5) * 2.0 / nt as f64;
+                    let s = (1.0 - c * c).sqrt();
+                    let mut ring = 0.0;
+                    for j in 0..mphi {
+                        let phi = (j as f64 + 0.5) * 2.0 * PI / mphi as f64;
+                        // ω = (ν, 0, s_ν); a perpendicular pair (−s_ν, 0, ν), (0, 1, 0).
+                        let mu = c * nu - s * phi.cos() * s_nu;
+                        ring += 1.0 / (1.0 - beta * mu);
+                    }
+                    sum += hg(g, c) * ring * (2.0 * PI / mphi as f64) * (2.0 / nt as f64);
+                }
+                let n = bias.norm(nu);
+                assert!(
+                    (n / sum - 1.0).abs() < 2e-4,
+                    "β {beta} g {g} ν {nu}: {n} against {sum}"
+                );
+            }
+        }
+    }
+}
+
+/// One biased direction draw is unbiased on its own: over draws from
+/// p_HG(ω·ω′)/((1 − βμ′)N(ν)) with ratio N(ν)(1 − βμ′), the mean ratio is 1
+/// and the mean of ratio·ω′ is the phase function's mean direction g·ω.
+#[test]
+fn a_biased_direction_draw_keeps_the_phase_functions_moments() {
+    let (beta, g) = (0.9, 0.3);
+    let bias = AngularBias::new(beta, g);
+    let (x, y) = (1.2, -0.7);
+    let r = f64::hypot(x, y);
+    let w_in = {
+        let v: [f64; 3] = [0.3, 0.8, -0.5];
+        let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+        v.map(|c| c / n)
+    };
+    let norm = bias.norm((w_in[0] * x + w_in[1] * y) / r);
+    let n = 400_000u64;
+    let (mut s1, mut s1sq) = (0.0, 0.0);
+    let mut sw = [0.0f64; 3];
+    let mut sw_sq = [0.0f64; 3];
+    for i in 0..n {
+        let mut rng = PathRng::new(11, i);
+        // The phase function's own first proposal, as the walk makes it.
+        let c = svkernel::forward::sampling::sample_hg_cos(g, rng.uniform());
+        let phi = 2.0 * std::f64::consts::PI * rng.uniform();
+        let first = svkernel::forward::sampling::rotate_direction(w_in, c, phi);
+        let (w, ln_ratio) = bias.sample(x, y, norm, w_in, first, &mut rng);
+        let q = ln_ratio.exp();
+        s1 += q;
+        s1sq += q * q;
+        for k in 0..3 {
+            sw[k] += q * w[k];
+            sw_sq[k] += (q * w[k]).powi(2);
+        }
+    }
+    let nf = n as f64;
+    let check = |sum: f64, sum_sq: f64, exact: f64, what: &str| {
+        let m = sum / nf;
+        let se = ((sum_sq / nf - m * m) / nf).sqrt();
+        assert!(
+            (m - exact).abs() < Z_MC * se,
+            "{what}: {m} against {exact} (se {se})"
+        );
+    };
+    check(s1, s1sq, 1.0, "mean ratio");
+    for k in 0..3 {
+        check(sw[k], sw_sq[k], g * w_in[k], "mean ratio·ω′");
+    }
+}
+
+/// At α = 0.6 the exponential transform alone leaves a cell 14 MFP away
+/// with heavy-tailed weights; offered the angular bias, the plan takes it
+/// there, and the run fills the cell.
+#[test]
+fn a_plan_takes_the_angular_bias_for_a_far_cell_at_mid_albedo() {
+    let c = config(&[0.6], &[1.0, 14.0], 1.0, 1, 53);
+    let opts = PlanOptions {
+        target: 300.0,
+        max_paths: 1 << 22,
+        angular_fractions: vec![0.9],
+        ..Default::default()
+    };
+    let (planned, cells) = c.plan(&opts, false).unwrap();
+    let far = cells.iter().find(|p| p.d == 14.0).unwrap();
+    assert!(far.flights.angular, "{far:?}");
+    let (tally, _) = planned.run(None, &RunOptions::default()).unwrap();
+    let n_eff = tally.cells[0][1].effective_paths();
+    assert!(n_eff > 0.5 * opts.target, "{n_eff} effective paths");
+    // Without it, the same budget leaves the cell short.
+    let (plain, _) = c
+        .plan(
+            &PlanOptions {
+                angular_fractions: Vec::new(),
+                ..opts.clone()
+            },
+            false,
+        )
+        .unwrap();
+    let (tally, _) = plain.run(None, &RunOptions::default()).unwrap();
+    let plain_eff = tally.cells[0][1].effective_paths();
+    assert!(plain_eff < 0.5 * n_eff, "{plain_eff} against {n_eff}");
 }

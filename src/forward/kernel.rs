@@ -47,7 +47,8 @@ use super::medium::Medium;
 use super::rng::{PathRng, splitmix64, threshold_u32, unit_f64};
 use super::runner::{self, RunOptions, Shard, Tally, chunk_paths, shard_range};
 use super::walk::{
-    Fate, Flights, Launched, UniformAlbedo, launch, max_bias, max_stretch_offset, walk_transformed,
+    Fate, FlightSampler, Flights, Launched, UniformAlbedo, launch, max_bias, max_stretch_offset,
+    walk_transformed,
 };
 use crate::error::{Error, Result};
 use crate::forward::medium::Source;
@@ -646,6 +647,11 @@ pub struct PlanOptions {
     /// whose weights stay bounded, [`max_stretch_offset`], shrinks as the
     /// albedo rises.
     pub stretch_fractions: Vec<f64>,
+    /// Also, at each albedo, exponential transforms with angular biasing
+    /// ([`Flights::angular`]) at these fractions of [`max_bias`]: near 1,
+    /// their weights stay near-constant over long paths, which fills the
+    /// far cells of low albedo that the transform alone leaves heavy-tailed.
+    pub angular_fractions: Vec<f64>,
 }
 
 impl Default for PlanOptions {
@@ -666,10 +672,12 @@ impl Default for PlanOptions {
                 stretch,
                 bias,
                 forced,
+                angular: false,
             })
             .to_vec(),
             bias_fractions: vec![0.6, 0.85],
             stretch_fractions: vec![0.6, 0.85],
+            angular_fractions: Vec::new(),
         }
     }
 }
@@ -975,7 +983,7 @@ impl KernelConfig {
             };
             for (ia, (medium, albedo)) in media.iter().enumerate() {
                 let mut rng = base;
-                let walk = (medium, albedo, Flights::ANALOG, start);
+                let walk = (medium, albedo, &FlightSampler::ANALOG, start);
                 let Some((exit, id, _)) =
                     self.counted_walk(walk, &mut rng, &mut vertices, |_| true)
                 else {
@@ -1009,6 +1017,7 @@ impl KernelConfig {
             feeds[id] = true;
         }
         let scale = (run.unit_log2 as f64).exp2();
+        let sampler = FlightSampler::new(run.flights, self.g);
         let seed = KernelRun::seed(self.seed, r);
         let mfp = 1.0 / self.density;
         let mut vertices: Vec<[f64; 2]> = Vec::new();
@@ -1019,7 +1028,7 @@ impl KernelConfig {
             let Some(start) = launch(&Source::Pencil, self.eta, &mut rng) else {
                 continue;
             };
-            let walk = (&medium, &albedo, run.flights, start);
+            let walk = (&medium, &albedo, &sampler, start);
             let Some((exit, id, log_ratio)) =
                 self.counted_walk(walk, &mut rng, &mut vertices, |id| feeds[id])
             else {
@@ -1048,7 +1057,7 @@ impl KernelConfig {
     /// likelihood ratio ([`walk_transformed`]).
     fn counted_walk(
         &self,
-        (medium, albedo, flights, start): (&Medium, &UniformAlbedo, Flights, Launched),
+        (medium, albedo, sampler, start): (&Medium, &UniformAlbedo, &FlightSampler, Launched),
         rng: &mut PathRng,
         vertices: &mut Vec<[f64; 2]>,
         feeds: impl Fn(usize) -> bool,
@@ -1058,7 +1067,7 @@ impl KernelConfig {
             medium,
             albedo,
             self.max_events,
-            flights,
+            sampler,
             start,
             rng,
             |v, _| vertices.push([v[0], v[1]]),
@@ -1103,6 +1112,7 @@ impl KernelConfig {
         for (key, fractions) in [
             ("bias_fractions", &opts.bias_fractions),
             ("stretch_fractions", &opts.stretch_fractions),
+            ("angular_fractions", &opts.angular_fractions),
         ] {
             if let Some(q) = fractions.iter().find(|q| !(**q > 0.0 && **q < 1.0)) {
                 return Err(Error::param(key, q, "in (0, 1)"));
@@ -1128,6 +1138,7 @@ impl KernelConfig {
                     stretch: 1.0 + q * c_max,
                     bias: 0.0,
                     forced,
+                    angular: false,
                 })
             });
             let cands: Vec<(usize, Flights)> = opts
@@ -1138,8 +1149,15 @@ impl KernelConfig {
                     stretch: 1.0,
                     bias: q * beta_max,
                     forced: 2,
+                    angular: false,
                 }))
                 .chain(stretched)
+                .chain(opts.angular_fractions.iter().map(|&q| Flights {
+                    stretch: 1.0,
+                    bias: q * beta_max,
+                    forced: 0,
+                    angular: true,
+                }))
                 .enumerate()
                 .filter(|(_, f)| f.bounded_weights(alpha, self.g))
                 .collect();
@@ -1259,6 +1277,7 @@ impl KernelConfig {
         let albedo = UniformAlbedo(threshold_u32(self.albedos[ia]));
         let seed = KernelRun::seed(self.seed ^ PILOT_SEED, ia * 64 + ic);
         let chunks = paths.div_ceil(runner::CHUNK_PATHS);
+        let sampler = FlightSampler::new(f, self.g);
         let parts: Vec<Pilot> = (0..chunks)
             .into_par_iter()
             .map(|k| {
@@ -1274,7 +1293,7 @@ impl KernelConfig {
                         &medium,
                         &albedo,
                         self.max_events,
-                        f,
+                        &sampler,
                         start,
                         &mut rng,
                         |_, _| {},
@@ -1513,14 +1532,19 @@ impl crate::doc::Document for KernelDoc {
 
 /// A flight sampling must keep σ' > 0 in every direction.
 fn check_flights(f: &Flights, name: &'static str) -> Result<()> {
-    if !(f.stretch > 0.0 && f.stretch <= 8.0 && (0.0..1.0).contains(&f.bias) && f.forced <= 64) {
+    if !(f.stretch > 0.0
+        && f.stretch <= 8.0
+        && (0.0..1.0).contains(&f.bias)
+        && f.forced <= 64
+        && (!f.angular || f.bias > 0.0))
+    {
         return Err(Error::param(
             name,
             format!(
-                "stretch {}, bias {}, forced {}",
-                f.stretch, f.bias, f.forced
+                "stretch {}, bias {}, forced {}, angular {}",
+                f.stretch, f.bias, f.forced, f.angular
             ),
-            "stretch in (0, 8], bias in [0, 1), forced <= 64",
+            "stretch in (0, 8], bias in [0, 1) (above 0 with angular), forced <= 64",
         ));
     }
     Ok(())

@@ -275,7 +275,7 @@ pub fn walk_general<A: AlbedoField>(
         medium,
         albedo,
         max_events,
-        Flights::ANALOG,
+        &FlightSampler::ANALOG,
         start,
         rng,
         visit,
@@ -292,12 +292,26 @@ pub fn walk_general<A: AlbedoField>(
 /// scatterings. The first `forced` collisions always scatter (survival
 /// biasing, ratio α each), so that at low albedo paths live long enough to
 /// be multiple scattering.
+///
+/// With `angular` set, the scattering directions are biased too: at every
+/// collision off the entry axis a new direction ω′ is drawn ∝
+/// p_HG(ω·ω′)/(1 − bias·μ′) ([`AngularBias`]), and a path survives a
+/// collision with probability min(1, α·N(ν)) instead of α. Each (1 − bias·μ′)
+/// then cancels the flight's own factor 1/(1 − bias·μ′), so a path's ratio
+/// is Π max(1, α·N(ν))·e^(−σ_t·bias·μs): e^(−bias·σ_t·r) for every path that
+/// reaches r below the medium's decay rate (α·N < 1; at g = 0, α·N = 1 at
+/// bias = κ, [`max_bias`]). That
+/// is the exponential transform with angular biasing (Spanier & Gelbard
+/// 1969, §3.5; Dwivedi 1982), which keeps the weights of deep paths
+/// near-constant where the transform alone leaves them heavy-tailed.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Flights {
     pub stretch: f64,
     pub bias: f64,
     #[serde(default)]
     pub forced: u32,
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub angular: bool,
 }
 
 impl Flights {
@@ -306,6 +320,7 @@ impl Flights {
         stretch: 1.0,
         bias: 0.0,
         forced: 0,
+        angular: false,
     };
 
     /// Whether the path weights of these flights keep a finite variance over
@@ -367,12 +382,137 @@ pub fn max_bias(albedo: f64, g: f64) -> f64 {
     (1.0 - albedo * g) * lo
 }
 
-/// The walk of [`walk_general`] with its free flights drawn as `flights`
-/// says, absorption and scattering analog except at forced collisions.
+/// The angular half of [`Flights::angular`]: scattering directions drawn ∝
+/// p_HG(ω·ω′)/(1 − βμ′), with μ′ = ω′·e the cosine to the horizontal
+/// direction e away from the entry axis at the collision, and the
+/// normalization N(ν) of that density for an incoming direction with ν = ω·e.
+///
+/// N follows from Heine's expansion 1/(z − x) = Σ_l (2l + 1) P_l(x) Q_l(z)
+/// (Q_l the Legendre functions of the second kind) at z = 1/β, and from
+/// ∫ p_HG(ω·ω′) P_l(ω′·e) dω′ = g^l P_l(ω·e) (Funk–Hecke):
+///
+///   N(ν) = (1/β) Σ_l (2l + 1) Q_l(1/β) g^l P_l(ν),  Q_0(1/β) = artanh β,
+///
+/// with the ratios Q_l/Q_(l−1) from the backward recurrence (the minimal
+/// solution; Gautschi 1967, "Computational aspects of three-term recurrence
+/// relations"). At g = 0 it is artanh(β)/β. Dimensionless.
+#[derive(Clone, Debug)]
+pub struct AngularBias {
+    beta: f64,
+    g: f64,
+    /// (2l + 1) Q_l(1/β) g^l / β, up to the order where the terms fall below
+    /// 10⁻¹⁷ of the first.
+    coef: Vec<f64>,
+}
+
+impl AngularBias {
+    pub fn new(beta: f64, g: f64) -> Self {
+        assert!(beta > 0.0 && beta < 1.0 && g.abs() < 1.0, "β {beta}, g {g}");
+        let z = 1.0 / beta;
+        // Order of the last term kept: (2l + 1)|g|^l < 10⁻¹⁷.
+        let mut order = 0usize;
+        while order < 4000 && (2 * order + 1) as f64 * g.abs().powi(order as i32) >= 1e-17 {
+            order += 1;
+        }
+        // Backward recurrence for R_l = Q_l/Q_(l−1): (l + 1)Q_(l+1) =
+        // (2l + 1)zQ_l − lQ_(l−1) gives R_l = l/((2l + 1)z − (l + 1)R_(l+1)).
+        // Started far enough above `order` that the dominant solution's
+        // share, r^(2(M − l)) with r = z − √(z² − 1), is below 10⁻¹⁸.
+        let r = z - (z * z - 1.0).sqrt();
+        let extra = (41.5 / (-r.ln()) / 2.0).ceil() as usize + 8;
+        let top = order + extra;
+        let mut ratio = vec![0.0; top + 2];
+        for l in (1..=top).rev() {
+            let lf = l as f64;
+            ratio[l] = lf / ((2.0 * lf + 1.0) * z - (lf + 1.0) * ratio[l + 1]);
+        }
+        let mut q = beta.atanh();
+        let mut gl = 1.0;
+        let mut coef = Vec::with_capacity(order + 1);
+        for (l, rl) in ratio.iter().enumerate().take(order + 1) {
+            if l > 0 {
+                q *= rl;
+                gl *= g;
+            }
+            coef.push((2 * l + 1) as f64 * q * gl / beta);
+        }
+        AngularBias { beta, g, coef }
+    }
+
+    /// N(ν) = ∫ p_HG(ω·ω′)/(1 − βω′·e) dω′ for ν = ω·e.
+    pub fn norm(&self, nu: f64) -> f64 {
+        let (mut p0, mut p1) = (1.0, nu);
+        let mut sum = self.coef[0];
+        for (l, c) in self.coef.iter().enumerate().skip(1) {
+            sum += c * p1;
+            let lf = l as f64;
+            let p2 = ((2.0 * lf + 1.0) * nu * p1 - lf * p0) / (lf + 1.0);
+            (p0, p1) = (p1, p2);
+        }
+        sum
+    }
+
+    /// Draws the direction after a scattering at horizontal position (x, y)
+    /// (r > 0), arriving along `w_in` with `norm` = N(ν), by rejection from
+    /// the phase function:
+    /// `first` is the phase function's own draw, each retry draws cos θ, φ
+    /// and then the acceptance number from `rng`; a proposal ω′ is kept with
+    /// probability (1 − β)/(1 − βμ′). Returns ω′ and ln of the analog pdf
+    /// over this one, ln(N(ν)(1 − βμ′)).
+    pub fn sample(
+        &self,
+        x: f64,
+        y: f64,
+        norm: f64,
+        w_in: Vec3,
+        first: Vec3,
+        rng: &mut PathRng,
+    ) -> (Vec3, f64) {
+        let r = x.hypot(y);
+        let (ex, ey) = (x / r, y / r);
+        let mut w = first;
+        loop {
+            let mu = w[0] * ex + w[1] * ey;
+            let keep = (1.0 - self.beta) / (1.0 - self.beta * mu);
+            if unit_f64(rng.next_u32()) < keep {
+                return (w, (norm * (1.0 - self.beta * mu)).ln());
+            }
+            let cos_theta = sample_hg_cos(self.g, unit_f64(rng.next_u32()));
+            let phi = 2.0 * PI * unit_f64(rng.next_u32());
+            w = rotate_direction(w_in, cos_theta, phi);
+        }
+    }
+}
+
+/// [`Flights`] ready to walk in a medium: with `angular`, the normalization
+/// of its direction density at the medium's g, computed once.
+#[derive(Clone, Debug)]
+pub struct FlightSampler {
+    pub flights: Flights,
+    angular: Option<AngularBias>,
+}
+
+impl FlightSampler {
+    /// The analog walk's flights and directions.
+    pub const ANALOG: FlightSampler = FlightSampler {
+        flights: Flights::ANALOG,
+        angular: None,
+    };
+
+    pub fn new(flights: Flights, g: f64) -> Self {
+        let angular =
+            (flights.angular && flights.bias > 0.0).then(|| AngularBias::new(flights.bias, g));
+        FlightSampler { flights, angular }
+    }
+}
+
+/// The walk of [`walk_general`] with its free flights (and, with
+/// [`Flights::angular`], its directions) drawn as `sampler` says, absorption and scattering analog except at forced collisions.
 /// Returns the fate, the number of scatterings and ln r, with r the path's
 /// probability under the analog walk over its probability under this one,
 ///
-/// ln r = Σ_collisions [ln(σ_t/σ') − (σ_t − σ')s] − Σ_walls (σ_t − σ')s + Σ_forced ln α.
+/// ln r = Σ_collisions [ln(σ_t/σ') − (σ_t − σ')s] − Σ_walls (σ_t − σ')s + Σ_forced ln α
+///        + Σ_biased collisions [ln(α/q) + ln(N(ν)(1 − βμ′))],  q = min(1, αN(ν)).
 ///
 /// Weighting each path by r makes any tally unbiased for the analog one
 /// (Spanier & Gelbard, *Monte Carlo Principles and Neutron Transport
@@ -385,11 +525,13 @@ pub fn walk_transformed<A: AlbedoField>(
     medium: &Medium,
     albedo: &A,
     max_events: u32,
-    flights: Flights,
+    sampler: &FlightSampler,
     start: Launched,
     rng: &mut PathRng,
     mut visit: impl FnMut(Vec3, Vec3),
 ) -> (Fate, u32, f64) {
+    let flights = sampler.flights;
+    debug_assert!(sampler.angular.as_ref().is_none_or(|a| a.g == medium.g));
     let sigma_t = medium.sigma_t();
     let analog = flights == Flights::ANALOG;
     let inv_eta = 1.0 / medium.eta;
@@ -432,18 +574,37 @@ pub fn walk_transformed<A: AlbedoField>(
         z += w[2] * s;
         // ---- collision: absorb or scatter -----------------------------------
         let p = [x, y, z];
-        let b = if n < flights.forced {
+        // Off the axis, the angular bias weighs the survival too: the path
+        // goes on with probability q = min(1, α·N(ν)) (ratio α/q), so that
+        // a survivor's ratio stays e^(−σ_t·bias·μs) per flight wherever
+        // α·N ≤ 1, and paths that the bias would otherwise keep walking
+        // indefinitely (α·N ≥ 1 makes the biased walk critical) end.
+        let angular = sampler.angular.as_ref().filter(|_| x.hypot(y) > 1e-12);
+        let mut norm = 1.0;
+        let b = if n < flights.forced || angular.is_some() {
             // Forced to scatter: b uniform below the local threshold t (so
             // the azimuth stays exact), ratio α = t/2³².
             let t = albedo.threshold(p[0], p[1]);
             if t == 0 {
                 return (Fate::Absorbed, n, log_ratio);
             }
-            log_ratio += (t as f64 / 4294967296.0).ln();
+            let alpha = t as f64 / 4294967296.0;
+            if let Some(bias) = angular {
+                let r = x.hypot(y);
+                norm = bias.norm((w[0] * x + w[1] * y) / r);
+                let q = (alpha * norm).min(1.0);
+                if unit_f64(rng.next_u32()) >= q {
+                    return (Fate::Absorbed, n, log_ratio);
+                }
+                log_ratio += (alpha / q).ln();
+            } else {
+                log_ratio += alpha.ln();
+            }
             ((b as u64 * t) >> 32) as u32
         } else {
             b
         };
+        let w_in = w;
         if let Some(end) = collide(
             albedo,
             medium.g,
@@ -456,6 +617,14 @@ pub fn walk_transformed<A: AlbedoField>(
             &mut visit,
         ) {
             return (end, n, log_ratio);
+        }
+        // Off the axis, the angular bias redraws the direction, starting
+        // from the phase function's own draw (on it, e is undefined: the
+        // direction stays analog, which is exact).
+        if let Some(bias) = angular {
+            let (dir, ln_ratio) = bias.sample(x, y, norm, w_in, w, rng);
+            w = dir;
+            log_ratio += ln_ratio;
         }
     }
 }
