@@ -1536,7 +1536,7 @@ fn check_flights(f: &Flights, name: &'static str) -> Result<()> {
         && f.stretch <= 8.0
         && (0.0..1.0).contains(&f.bias)
         && f.forced <= 64
-        && (!f.angular || f.bias > 0.0))
+        && (!f.angular || (f.bias > 0.0 && f.stretch == 1.0)))
     {
         return Err(Error::param(
             name,
@@ -1544,7 +1544,7 @@ fn check_flights(f: &Flights, name: &'static str) -> Result<()> {
                 "stretch {}, bias {}, forced {}, angular {}",
                 f.stretch, f.bias, f.forced, f.angular
             ),
-            "stretch in (0, 8], bias in [0, 1) (above 0 with angular), forced <= 64",
+            "stretch in (0, 8], bias in [0, 1) (above 0 and stretch 1 with angular), forced <= 64",
         ));
     }
     Ok(())

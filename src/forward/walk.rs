@@ -295,12 +295,15 @@ pub fn walk_general<A: AlbedoField>(
 ///
 /// With `angular` set, the scattering directions are biased too: at every
 /// collision off the entry axis a new direction ω′ is drawn ∝
-/// p_HG(ω·ω′)/(1 − bias·μ′) ([`AngularBias`]), and a path survives a
-/// collision with probability min(1, α·N(ν)) instead of α. Each (1 − bias·μ′)
-/// then cancels the flight's own factor 1/(1 − bias·μ′), so a path's ratio
-/// is Π max(1, α·N(ν))·e^(−σ_t·bias·μs): e^(−bias·σ_t·r) for every path that
-/// reaches r below the medium's decay rate (α·N < 1; at g = 0, α·N = 1 at
-/// bias = κ, [`max_bias`]). That
+/// p_HG(ω·ω′)/(1 − bias·μ′) ([`AngularBias`]), a path survives a
+/// collision with probability min(1, α·N(ν)) instead of α, and each flight's
+/// optical depth follows the radius exactly, σ_t(s − bias·(r(s) − r₀)), so
+/// that its ratio is e^(−σ_t·bias·Δr)/(1 − bias·ν) with ν the radial cosine
+/// where it ends. Each sampled (1 − bias·μ′) then meets the next flight's
+/// 1/(1 − bias·ν) (equal unless the flight turns about the axis), so a
+/// path's ratio is near e^(−bias·σ_t·r) for every path that reaches r below
+/// the medium's decay rate (α·N < 1; at g = 0, α·N = 1 at bias = κ,
+/// [`max_bias`]). That
 /// is the exponential transform with angular biasing (Spanier & Gelbard
 /// 1969, §3.5; Dwivedi 1982), which keeps the weights of deep paths
 /// near-constant where the transform alone leaves them heavy-tailed.
@@ -484,6 +487,33 @@ impl AngularBias {
     }
 }
 
+/// The length s of a flight from horizontal position (x, y) along `w` whose
+/// radially transformed optical depth s − β(r(s) − r₀) (in MFP, r(s) the
+/// distance from the entry axis after s) is `tau`. The depth rises with s
+/// at rate 1 − βν(s) ≥ 1 − β (ν the radial cosine) and is concave (r(s) is
+/// convex), so Newton's method from s₀ = τ/(1 + β|w_h|), where the depth is
+/// at most τ, climbs to the root without overshooting.
+fn radial_flight(x: f64, y: f64, w: &Vec3, beta: f64, tau: f64) -> f64 {
+    let r0 = x.hypot(y);
+    let mut s = tau / (1.0 + beta * w[0].hypot(w[1]));
+    for _ in 0..64 {
+        let (px, py) = (x + w[0] * s, y + w[1] * s);
+        let r = px.hypot(py);
+        let nu = if r > 1e-300 {
+            (px * w[0] + py * w[1]) / r
+        } else {
+            0.0
+        };
+        let f = s - beta * (r - r0) - tau;
+        let step = -f / (1.0 - beta * nu);
+        s += step;
+        if step.abs() <= 1e-14 * s.max(1e-300) {
+            break;
+        }
+    }
+    s
+}
+
 /// [`Flights`] ready to walk in a medium: with `angular`, the normalization
 /// of its direction density at the medium's g, computed once.
 #[derive(Clone, Debug)]
@@ -511,8 +541,13 @@ impl FlightSampler {
 /// Returns the fate, the number of scatterings and ln r, with r the path's
 /// probability under the analog walk over its probability under this one,
 ///
-/// ln r = Σ_collisions [ln(σ_t/σ') − (σ_t − σ')s] − Σ_walls (σ_t − σ')s + Σ_forced ln α
-///        + Σ_biased collisions [ln(α/q) + ln(N(ν)(1 − βμ′))],  q = min(1, αN(ν)).
+/// ln r = Σ_collisions [ln(σ_t/σ') − (σ_t − σ')s] − Σ_walls (σ_t − σ')s + Σ_forced ln α,
+///
+/// and with [`Flights::angular`]
+///
+/// ln r = −σ_tβ·r_end − Σ_collisions ln(1 − βν) + Σ_biased collisions [ln(α/q) + ln(N(ν)(1 − βμ′))],
+///
+/// q = min(1, αN(ν)) (on the axis, collisions are forced with ratio α).
 ///
 /// Weighting each path by r makes any tally unbiased for the analog one
 /// (Spanier & Gelbard, *Monte Carlo Principles and Neutron Transport
@@ -543,7 +578,11 @@ pub fn walk_transformed<A: AlbedoField>(
     loop {
         let (a, b, c) = (rng.next_u32(), rng.next_u32(), rng.next_u32());
         // ---- free flight ----------------------------------------------------
-        let sigma = if analog {
+        // With the angular bias the transform follows the radius exactly:
+        // optical depth σ_t(s − β(r(s) − r₀)) ([`radial_flight`]).
+        let radial = sampler.angular.is_some();
+        let r0 = if radial { x.hypot(y) } else { 0.0 };
+        let sigma = if analog || radial {
             sigma_t
         } else {
             let r = x.hypot(y);
@@ -554,11 +593,18 @@ pub fn walk_transformed<A: AlbedoField>(
             };
             sigma_t * flights.stretch * (1.0 - flights.bias * mu)
         };
-        let s = -unit_open0_f64(a).ln() / sigma;
+        let s = if radial {
+            radial_flight(x, y, &w, flights.bias, -unit_open0_f64(a).ln() / sigma_t)
+        } else {
+            -unit_open0_f64(a).ln() / sigma
+        };
         // ---- boundary: surface (w_z > 0) or slab bottom (w_z < 0) ------------
         let to_wall = wall_distance(z, &w, bottom);
         if s >= to_wall {
-            if !analog {
+            if radial {
+                let r = (x + w[0] * to_wall).hypot(y + w[1] * to_wall);
+                log_ratio -= sigma_t * flights.bias * (r - r0);
+            } else if !analog {
                 log_ratio -= (sigma_t - sigma) * to_wall;
             }
             match hit_wall(&mut x, &mut y, &mut z, &mut w, to_wall, bottom, b, inv_eta) {
@@ -566,12 +612,21 @@ pub fn walk_transformed<A: AlbedoField>(
                 Wall::Left(fate) => return (fate, n, log_ratio),
             }
         }
-        if !analog {
+        if !analog && !radial {
             log_ratio += (sigma_t / sigma).ln() - (sigma_t - sigma) * s;
         }
         x += w[0] * s;
         y += w[1] * s;
         z += w[2] * s;
+        if radial {
+            let r = x.hypot(y);
+            let nu = if r > 1e-12 {
+                (w[0] * x + w[1] * y) / r
+            } else {
+                w[0].hypot(w[1])
+            };
+            log_ratio -= sigma_t * flights.bias * (r - r0) + (1.0 - flights.bias * nu).ln();
+        }
         // ---- collision: absorb or scatter -----------------------------------
         let p = [x, y, z];
         // Off the axis, the angular bias weighs the survival too: the path
