@@ -7,11 +7,8 @@
 # The box is α ∈ [0.05, 0.999] × d ∈ [0.05, 20] MFP: 10 albedos × 13 pair
 # distances on a window of ±6λ (bins of λ/4, as the shipped tally's), one
 # round planned per cell for 2000 effective contributing paths (docs/method.md
-# §3), the pilots offered exponential transforms with angular biasing at 0.8,
-# 0.9 and 0.97 of each albedo's bias bound (the far cells of low and mid
-# albedo), then up to two top-up rounds for the cells still short. The fit
-# sums the last-vertex histograms onto bins of λ/8 (exact), four times fewer
-# bins than the tally's λ/16.
+# §3), no top-up. The fit sums the last-vertex histograms onto bins of λ/8
+# (exact), four times fewer bins than the tally's λ/16.
 #
 #   bash tools/make_kernels_wide.sh             # tally, fit and the shipped model
 #   SKIP_SIM=1 bash tools/make_kernels_wide.sh  # refit an existing tally only
@@ -25,7 +22,7 @@ if [ -z "${SKIP_SIM:-}" ]; then
     --albedos 0.05,0.2,0.4,0.6,0.75,0.85,0.92,0.96,0.99,0.999 \
     --distances 0.05,0.1,0.2,0.35,0.6,1,1.6,2.5,4,6.5,10,14,20 \
     --nu 48 --nv 24 --extent 6 --rel-width 0.1 --min-order 2 --eta 1.5 --g 0.3 --density 1 \
-    --min-paths 2000 --angular 0.8,0.9,0.97 --top-ups 2 --paths 4e8 --seed 3000 --resume \
+    --min-paths 2000 --top-ups 0 --paths 4e8 --seed 3000 --resume \
     --out "$tally" | sed -n 1p
 fi
 $bin fit kernels --in "$tally" --degree "${DEGREE:-5,4}" --vertex-refine 2 \

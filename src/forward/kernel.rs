@@ -650,7 +650,7 @@ pub struct PlanOptions {
     /// Also, at each albedo, exponential transforms with angular biasing
     /// ([`Flights::angular`]) at these fractions of [`max_bias`]: near 1,
     /// their weights stay near-constant over long paths, which fills the
-    /// far cells of low albedo that the transform alone leaves heavy-tailed.
+    /// far cells of mid albedo that the transform alone leaves heavy-tailed.
     pub angular_fractions: Vec<f64>,
 }
 

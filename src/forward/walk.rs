@@ -303,10 +303,10 @@ pub fn walk_general<A: AlbedoField>(
 /// 1/(1 − bias·ν) (equal unless the flight turns about the axis), so a
 /// path's ratio is near e^(−bias·σ_t·r) for every path that reaches r below
 /// the medium's decay rate (α·N < 1; at g = 0, α·N = 1 at bias = κ,
-/// [`max_bias`]). That
-/// is the exponential transform with angular biasing (Spanier & Gelbard
-/// 1969, §3.5; Dwivedi 1982), which keeps the weights of deep paths
-/// near-constant where the transform alone leaves them heavy-tailed.
+/// [`max_bias`]). That is the exponential transform with angular biasing
+/// (Spanier & Gelbard 1969, §3.5; Dwivedi 1982), which keeps the weights of
+/// deep paths near-constant where the transform alone leaves them
+/// heavy-tailed.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Flights {
     pub stretch: f64,
