@@ -487,6 +487,18 @@ impl AngularBias {
     }
 }
 
+/// The cosine between `w` and the horizontal direction away from the entry
+/// axis at (x, y); on the axis, the direction's own horizontal part |w_h|.
+#[inline]
+fn radial_cosine(x: f64, y: f64, w: &Vec3) -> f64 {
+    let r = x.hypot(y);
+    if r > 1e-12 {
+        (w[0] * x + w[1] * y) / r
+    } else {
+        w[0].hypot(w[1])
+    }
+}
+
 /// The length s of a flight from horizontal position (x, y) along `w` whose
 /// radially transformed optical depth s − β(r(s) − r₀) (in MFP, r(s) the
 /// distance from the entry axis after s) is `tau`. The depth rises with s
@@ -537,7 +549,8 @@ impl FlightSampler {
 }
 
 /// The walk of [`walk_general`] with its free flights (and, with
-/// [`Flights::angular`], its directions) drawn as `sampler` says, absorption and scattering analog except at forced collisions.
+/// [`Flights::angular`], its directions) drawn as `sampler` says,
+/// absorption and scattering analog except at forced collisions.
 /// Returns the fate, the number of scatterings and ln r, with r the path's
 /// probability under the analog walk over its probability under this one,
 ///
@@ -547,7 +560,7 @@ impl FlightSampler {
 ///
 /// ln r = −σ_tβ·r_end − Σ_collisions ln(1 − βν) + Σ_biased collisions [ln(α/q) + ln(N(ν)(1 − βμ′))],
 ///
-/// q = min(1, αN(ν)) (on the axis, collisions are forced with ratio α).
+/// q = min(1, αN(ν)) (on the axis, directions and survival stay analog).
 ///
 /// Weighting each path by r makes any tally unbiased for the analog one
 /// (Spanier & Gelbard, *Monte Carlo Principles and Neutron Transport
@@ -567,6 +580,9 @@ pub fn walk_transformed<A: AlbedoField>(
 ) -> (Fate, u32, f64) {
     let flights = sampler.flights;
     debug_assert!(sampler.angular.as_ref().is_none_or(|a| a.g == medium.g));
+    // With the angular bias the transform follows the radius exactly:
+    // optical depth σ_t(s − β(r(s) − r₀)) ([`radial_flight`]).
+    let radial = sampler.angular.is_some();
     let sigma_t = medium.sigma_t();
     let analog = flights == Flights::ANALOG;
     let inv_eta = 1.0 / medium.eta;
@@ -578,20 +594,11 @@ pub fn walk_transformed<A: AlbedoField>(
     loop {
         let (a, b, c) = (rng.next_u32(), rng.next_u32(), rng.next_u32());
         // ---- free flight ----------------------------------------------------
-        // With the angular bias the transform follows the radius exactly:
-        // optical depth σ_t(s − β(r(s) − r₀)) ([`radial_flight`]).
-        let radial = sampler.angular.is_some();
         let r0 = if radial { x.hypot(y) } else { 0.0 };
         let sigma = if analog || radial {
             sigma_t
         } else {
-            let r = x.hypot(y);
-            let mu = if r > 1e-12 {
-                (w[0] * x + w[1] * y) / r
-            } else {
-                w[0].hypot(w[1])
-            };
-            sigma_t * flights.stretch * (1.0 - flights.bias * mu)
+            sigma_t * flights.stretch * (1.0 - flights.bias * radial_cosine(x, y, &w))
         };
         let s = if radial {
             radial_flight(x, y, &w, flights.bias, -unit_open0_f64(a).ln() / sigma_t)
@@ -618,20 +625,18 @@ pub fn walk_transformed<A: AlbedoField>(
         x += w[0] * s;
         y += w[1] * s;
         z += w[2] * s;
+        // The radial cosine where the flight ends: the incoming ν of the
+        // collision (needed only with the angular bias).
+        let nu = if radial { radial_cosine(x, y, &w) } else { 0.0 };
         if radial {
-            let r = x.hypot(y);
-            let nu = if r > 1e-12 {
-                (w[0] * x + w[1] * y) / r
-            } else {
-                w[0].hypot(w[1])
-            };
-            log_ratio -= sigma_t * flights.bias * (r - r0) + (1.0 - flights.bias * nu).ln();
+            log_ratio -=
+                sigma_t * flights.bias * (x.hypot(y) - r0) + (1.0 - flights.bias * nu).ln();
         }
         // ---- collision: absorb or scatter -----------------------------------
         let p = [x, y, z];
         // Off the axis, the angular bias weighs the survival too: the path
         // goes on with probability q = min(1, α·N(ν)) (ratio α/q), so that
-        // a survivor's ratio stays e^(−σ_t·bias·μs) per flight wherever
+        // a survivor's ratio stays e^(−σ_t·bias·Δr) per step wherever
         // α·N ≤ 1, and paths that the bias would otherwise keep walking
         // indefinitely (α·N ≥ 1 makes the biased walk critical) end.
         let angular = sampler.angular.as_ref().filter(|_| x.hypot(y) > 1e-12);
@@ -645,8 +650,7 @@ pub fn walk_transformed<A: AlbedoField>(
             }
             let alpha = t as f64 / 4294967296.0;
             if let Some(bias) = angular {
-                let r = x.hypot(y);
-                norm = bias.norm((w[0] * x + w[1] * y) / r);
+                norm = bias.norm(nu);
                 let q = (alpha * norm).min(1.0);
                 if unit_f64(rng.next_u32()) >= q {
                     return (Fate::Absorbed, n, log_ratio);
