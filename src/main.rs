@@ -746,6 +746,17 @@ enum Fit {
         /// own; exact, one vertex of each per path): fewer bins, a faster fit.
         #[arg(long)]
         vertex_refine: Option<usize>,
+        /// Start the joint fits from this fitted meta-model's coefficients,
+        /// at its K and degrees, instead of climbing from per-cell fits: a
+        /// refit of a new tally over the model's box (its box, g and η
+        /// must be the tally's).
+        #[arg(long, conflicts_with_all = ["components", "degree"])]
+        from: Option<PathBuf>,
+        /// Let the whole-plane moment residuals allow for the data's own
+        /// standard errors (each tolerance τ becomes sqrt(τ² + se²)): for
+        /// tallies whose moments are noisier than the tolerances.
+        #[arg(long)]
+        moment_errors: bool,
     },
     /// Make a fitted meta-model carry a fit over a wider box (d, α), which
     /// answers the kernel queries outside its own box (the shipped model
@@ -1506,6 +1517,8 @@ fn fit(f: Fit) -> Result<()> {
             components,
             degree,
             vertex_refine,
+            from,
+            moment_errors,
         } => {
             use svkernel::jobs::fit_kernels;
             let components = match components[..] {
@@ -1532,9 +1545,15 @@ fn fit(f: Fit) -> Result<()> {
                     components,
                     degree: (dx, dy),
                     vertex_refine,
+                    start: from.clone(),
+                    moment_errors,
                 },
                 true,
-            )?;
+            )
+            .with_context(|| match &from {
+                Some(m) => format!("refitting {} from {}", input.display(), m.display()),
+                None => format!("fitting {}", input.display()),
+            })?;
             print!("{}", fit_kernels::aggregation_summary(&r.aggregation));
             for j in &r.joint {
                 println!(
@@ -1923,7 +1942,14 @@ const FLAGS: &[(&str, &str)] = &[
 /// A library error about a parameter, named by the flag that set it
 /// (`albedo` → `--albedo`); other errors as they are.
 fn named_by_flag(e: anyhow::Error) -> anyhow::Error {
-    match e.downcast::<svkernel::Error>() {
+    // `downcast` sees through contexts and returns the error without them:
+    // keep their messages to put back around the renamed one.
+    let contexts: Vec<String> = e
+        .chain()
+        .take_while(|c| !c.is::<svkernel::Error>())
+        .map(|c| c.to_string())
+        .collect();
+    let renamed = match e.downcast::<svkernel::Error>() {
         Ok(svkernel::Error::Param {
             name,
             value,
@@ -1938,8 +1964,12 @@ fn named_by_flag(e: anyhow::Error) -> anyhow::Error {
         }
         .into(),
         Ok(other) => other.into(),
-        Err(e) => e,
-    }
+        Err(e) => return e,
+    };
+    contexts
+        .iter()
+        .rev()
+        .fold(renamed, |e, c| e.context(c.clone()))
 }
 
 /// `e`'s parameter `from` renamed `to` (a library parameter that a

@@ -864,6 +864,50 @@ fn fit_kernels_writes_under_out_by_default() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(d.join("out/fit/metamodel.json").exists());
     assert!(d.join("out/fit/metamodel_report/report.json").exists());
+    // A refit from that model starts where its fit ended, so it ends no
+    // higher, and its report names the start.
+    let o = bin()
+        .current_dir(&d)
+        .args(["fit", "kernels", "--from", "out/fit/metamodel.json"])
+        .args(["--out", "refit/metamodel.json", "--in"])
+        .arg(&tally)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report = |p: &str| -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(d.join(p)).unwrap()).unwrap()
+    };
+    let (fit, refit) = (
+        report("out/fit/metamodel_report/report.json"),
+        report("refit/metamodel_report/report.json"),
+    );
+    assert_eq!(refit["start"], "out/fit/metamodel.json");
+    assert_eq!(refit["degree"], fit["degree"]);
+    for class in 0..2 {
+        let chi2 = |r: &serde_json::Value| r["joint"][class]["chi2"].as_f64().unwrap();
+        assert!(
+            chi2(&refit) <= chi2(&fit),
+            "{} > {}",
+            chi2(&refit),
+            chi2(&fit)
+        );
+    }
+    // The shipped model's box is not this tally's: a clear error.
+    let shipped_model = concat!(env!("CARGO_MANIFEST_DIR"), "/data/profiles/metamodel.json");
+    let o = bin()
+        .current_dir(&d)
+        .args(["fit", "kernels", "--from", shipped_model])
+        .args(["--out", "bad/metamodel.json", "--in"])
+        .arg(&tally)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert!(
+        err.contains("metamodel.json") && err.contains("box"),
+        "{err}"
+    );
+    assert!(!d.join("bad/metamodel.json").exists());
     let after = std::fs::read(concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/data/profiles/metamodel.json"

@@ -584,19 +584,30 @@ fn simulate_kernels(
     to_json(&lib(doc)?)
 }
 
-/// Fits the meta-model to a kernel tally (JSON text) and returns the
-/// model's and the fit report's JSON texts.
+/// Fits the meta-model to a kernel tally (JSON text), from the data alone
+/// or from `start`'s coefficients, and returns the model and the fit
+/// report's JSON text.
 #[pyfunction]
-#[pyo3(signature = (tally, components, degrees, progress))]
+#[pyo3(signature = (tally, components, degrees, progress, start=None))]
 fn fit_kernels(
     py: Python<'_>,
     tally: &str,
     components: usize,
     degrees: (usize, usize),
     progress: bool,
+    start: Option<PyRef<'_, MetaModel>>,
 ) -> PyResult<(MetaModel, String)> {
+    use svkernel::fit::meta::{FitStart, fit_metamodel_with};
     let doc: KernelDoc = lib(svkernel::doc::from_json(tally, Path::new("<tally>")))?;
-    let (model, fit) = lib(py.detach(|| fit_metamodel(&doc, components, degrees, progress)))?;
+    let start_file = start.map(|m| Arc::clone(&m.inner));
+    let from = match &start_file {
+        Some(f) => FitStart::From(f),
+        None => FitStart::Ladder {
+            components: components.into(),
+            degree: degrees,
+        },
+    };
+    let (model, fit) = lib(py.detach(|| fit_metamodel_with(&doc, &from, false, progress)))?;
     let report = serde_json::json!({
         "joint": fit.joint.iter().map(|j| serde_json::json!({
             "what": j.what,

@@ -518,8 +518,14 @@ def fit_kernels(
     components: int = 3,
     degrees: Tuple[int, int] = (2, 2),
     progress: bool = False,
+    start: Optional[MetaModel] = None,
 ) -> Tuple[MetaModel, Dict[str, Any]]:
     """Fits a meta-model (K Gaussians; polynomial degrees in ln d and √(1 − α)) to a tally.
+
+    With ``start``, a fitted model over the same box of (d, α) and the same
+    medium, the joint fits start from its coefficients, at its K and
+    degrees (``components`` and ``degrees`` are then not used): a refit of
+    new data, as ``svkernel fit kernels --from``.
 
     Returns the model (usable as ``model=`` everywhere, :meth:`MetaModel.save`)
     and the fit report: the joint fits (``termination``, ``evaluations``,
@@ -529,8 +535,10 @@ def fit_kernels(
     """
     if not isinstance(tally, KernelSimulation):
         raise InvalidParameter("invalid tally: must be a KernelSimulation", key="tally")
+    if start is not None and not isinstance(start, MetaModel):
+        raise InvalidParameter("invalid start: must be a MetaModel", key="start")
     model, report = _svkernel.fit_kernels(
-        tally._text, int(components), (int(degrees[0]), int(degrees[1])), bool(progress)
+        tally._text, int(components), (int(degrees[0]), int(degrees[1])), bool(progress), start
     )
     return model, json.loads(report)
 

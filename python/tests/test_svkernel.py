@@ -343,6 +343,15 @@ def test_simulate_and_fit_kernels_give_a_usable_meta_model(tmp_path):
     assert s.eval([[0.0, 0.0]], [[0.5, 0.0]])[0] > 0
     tally.save(tmp_path / "tally.json")
     assert json.loads((tmp_path / "tally.json").read_text())["paths"] == tally.doc["paths"]
+    # A refit from the model starts where its fit ended: no higher χ².
+    again, refit = sk.fit_kernels(tally, start=model)
+    assert again.components == 2
+    for a, b in zip(refit["joint"], report["joint"]):
+        assert a["chi2_per_dof"] <= b["chi2_per_dof"]
+    # The shipped model's box is not this tally's.
+    with pytest.raises(sk.FitError) as e:
+        sk.fit_kernels(tally, start=sk.MetaModel.default())
+    assert "box" in str(e.value)
 
 
 def test_meta_model_default_and_errors(tmp_path):

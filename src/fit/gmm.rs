@@ -50,6 +50,9 @@
 //! the meta-model's targets) and the target's weight W
 //! ([`PlaneTarget::weight`]): a miss by the tolerance costs W² in χ². The width's residual is logarithmic, so it is
 //! gentle near the target and grows without bound for a runaway component.
+//! If the target carries the data's standard errors ([`PlaneTarget::se`]),
+//! each tolerance τ becomes √(τ² + se²) (se of rms s relative to s̄ for the
+//! logarithmic one): a moment known only to ±se is not pulled closer.
 //!
 //! # Derivatives
 //! With z = (x − μ)/σ at a bin edge x, ∂Φ(z)/∂μ = −φ(z)/σ and
@@ -134,6 +137,11 @@ pub struct PlaneTarget {
     pub rms_s: f64,
     /// The residuals' weight W.
     pub weight: f64,
+    /// Standard errors of `mean_t` and `rms_s` (MFP) that the residuals
+    /// allow for, in quadrature with the tolerances (module docs,
+    /// "Moments"); zeros: the tolerances alone.
+    #[serde(default)]
+    pub se: [f64; 2],
 }
 
 impl KernelHistogram {
@@ -398,17 +406,19 @@ impl<'a> GmmFit<'a> {
             mean_t: t_data,
             rms_s: s_data,
             weight,
+            se,
         } = self.data.plane?;
         let k = self.k;
         let d = self.data.d;
+        let s_data = s_data.max(1e-6);
         let (tol_t, tol_s) = moment_tolerances(d);
+        let (tol_t, tol_s) = (tol_t.hypot(se[0]), tol_s.hypot(se[1] / s_data));
         let mu: Vec<f64> = (0..k).map(|i| self.mu(i)).collect();
         let s2: Vec<f64> = (0..k).map(|i| self.sig(i).powi(2)).collect();
         let et: f64 = (0..k).map(|i| w[i] * mu[i]).sum();
         let es2: f64 = (0..k).map(|i| w[i] * s2[i]).sum::<f64>().max(1e-300);
         let rs = es2.sqrt();
         let (ft, fs) = (weight / tol_t, weight / tol_s);
-        let s_data = s_data.max(1e-6);
         let mut gt = vec![0.0; 3 * k - 1];
         let mut gs = vec![0.0; 3 * k - 1];
         for c in 0..k {
@@ -828,6 +838,39 @@ mod tests {
         assert!(o > 0.0 && o < 1e-80, "{o}");
     }
 
+    /// The moment residuals allow for the data's standard errors in
+    /// quadrature with the tolerances, and their Jacobian still matches.
+    #[test]
+    fn moment_residuals_allow_for_the_datas_errors() {
+        let h = noisy(
+            &histogram_of(&truth3(), &template(3.0, (-2.0, 5.0, 14), (2.5, 7), 0)),
+            100_000,
+            11,
+        );
+        let (tol_t, tol_s) = moment_tolerances(h.d);
+        let target = |se: [f64; 2]| PlaneTarget {
+            mean_t: 1.3,
+            rms_s: 0.9,
+            weight: 2.0,
+            se,
+        };
+        let theta = GmmFit::theta_of(&truth3());
+        let moments = |se: [f64; 2]| {
+            let mut hp = h.clone();
+            hp.plane = Some(target(se));
+            let mut p = GmmFit::new(&hp, 3, theta.clone());
+            assert!(jacobian_mismatch(&mut p) < 1e-6);
+            let r = p.residuals().unwrap();
+            [r[r.len() - 2], r[r.len() - 1]]
+        };
+        let bare = moments([0.0; 2]);
+        let noisy = moments([3.0 * tol_t, 3.0 * tol_s * 0.9]);
+        for (a, b) in bare.iter().zip(&noisy) {
+            assert!(a.abs() > 1e-3, "{a}");
+            assert!((b / a - 1.0 / 10f64.sqrt()).abs() < 1e-12, "{b} / {a}");
+        }
+    }
+
     #[test]
     fn jacobian_matches_numerical() {
         let h = noisy(
@@ -840,6 +883,7 @@ mod tests {
             mean_t: 1.3,
             rms_s: 0.9,
             weight: 2.0,
+            se: [0.0; 2],
         });
         let mut rng = PathRng::new(12, 0);
         for (k, h) in [
@@ -924,6 +968,7 @@ mod tests {
             mean_t: moments.mean_t,
             rms_s: moments.rms_s,
             weight: MOMENT_WEIGHT,
+            se: [0.0; 2],
         });
         let seen = crate::fit::meta::PlaneMoments::of(&fit(&h));
         let (tol_t, tol_s) = moment_tolerances(h.d);

@@ -7,7 +7,7 @@ use crate::error::{Error, Result};
 use crate::fit::aggregation::{AggregationRow, aggregation_row};
 use crate::fit::gmm::histogram_of;
 use crate::fit::lm::FitReport;
-use crate::fit::meta::{Cell, Components, PlaneMoments, fit_metamodel};
+use crate::fit::meta::{Cell, Components, FitStart, PlaneMoments, fit_metamodel_with};
 use crate::forward::kernel::{KernelDoc, VertexClass};
 use crate::metamodel::kernel::{Gmm, manual_kernel};
 use crate::metamodel::meta::MetaModelFile;
@@ -25,6 +25,14 @@ pub struct KernelReport {
     /// The first- and last-vertex grids' refinement the fit saw.
     #[serde(default)]
     pub vertex_refine: usize,
+    /// The meta-model the joint fits started from
+    /// ([`KernelFitOptions::start`]), if not the ladder.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub start: Option<String>,
+    /// Whether the moment residuals allowed for the data's standard errors
+    /// ([`KernelFitOptions::moment_errors`]).
+    #[serde(default)]
+    pub moment_errors: bool,
     pub joint: Vec<FitReport>,
     /// Per-cell fit reports (or the error) per class.
     pub per_cell: Vec<(String, Vec<std::result::Result<FitReport, String>>)>,
@@ -43,6 +51,14 @@ pub struct KernelFitOptions {
     /// finer than the all-vertex one, a divisor of the tally's own
     /// ([`KernelDoc::coarsen_vertices`]); `None`: the tally's grid.
     pub vertex_refine: Option<usize>,
+    /// Start the joint fits from this fitted meta-model's coefficients, at
+    /// its K and degrees (`components` and `degree` are then not used): a
+    /// refit of new data over the model's box
+    /// ([`crate::fit::meta::FitStart::From`]). `None`: from the data alone.
+    pub start: Option<std::path::PathBuf>,
+    /// The whole-plane moment residuals allow for the data's standard
+    /// errors ([`crate::fit::meta::with_moment_errors`]).
+    pub moment_errors: bool,
 }
 
 /// Fits the meta-model (all and last vertices) to `data`, writes `out` and
@@ -55,7 +71,6 @@ pub fn fit_kernels(
     progress: bool,
 ) -> Result<KernelReport> {
     let start = Instant::now();
-    let (k, degree) = (opts.components, opts.degree);
     let doc = load_tally(data, opts.vertex_refine)?;
     if doc.config.density != 1.0 {
         return Err(Error::format(
@@ -64,7 +79,22 @@ pub fn fit_kernels(
             "the meta-model is trained at unit density (other densities follow by scaling)",
         ));
     }
-    let (file, fit) = fit_metamodel(&doc, k, degree, progress)?;
+    let start_file = opts.start.as_deref().map(MetaModelFile::load).transpose()?;
+    let from = match &start_file {
+        Some(f) => FitStart::From(f),
+        None => FitStart::Ladder {
+            components: opts.components,
+            degree: opts.degree,
+        },
+    };
+    let (file, fit) = fit_metamodel_with(&doc, &from, opts.moment_errors, progress)?;
+    let (k, degree) = (
+        Components {
+            all: file.all.k,
+            last: file.last.k,
+        },
+        (file.all.deg_x, file.all.deg_y),
+    );
     crate::jobs::store::write_json_atomic(out, &file)?;
     let report = KernelReport {
         model_file: out.display().to_string(),
@@ -72,6 +102,8 @@ pub fn fit_kernels(
         components: k,
         degree,
         vertex_refine: doc.config.grid.vertex_refine,
+        start: opts.start.as_ref().map(|p| p.display().to_string()),
+        moment_errors: opts.moment_errors,
         joint: fit.joint,
         per_cell: fit.per_cell,
         aggregation: fit.aggregation,
