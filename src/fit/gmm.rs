@@ -838,15 +838,20 @@ mod tests {
         assert!(o > 0.0 && o < 1e-80, "{o}");
     }
 
+    /// [`truth3`] on a 14 × 7 grid with the noise of 10⁵ paths.
+    fn noisy_truth3() -> KernelHistogram {
+        noisy(
+            &histogram_of(&truth3(), &template(3.0, (-2.0, 5.0, 14), (2.5, 7), 0)),
+            100_000,
+            11,
+        )
+    }
+
     /// The moment residuals allow for the data's standard errors in
     /// quadrature with the tolerances, and their Jacobian still matches.
     #[test]
     fn moment_residuals_allow_for_the_datas_errors() {
-        let h = noisy(
-            &histogram_of(&truth3(), &template(3.0, (-2.0, 5.0, 14), (2.5, 7), 0)),
-            100_000,
-            11,
-        );
+        let h = noisy_truth3();
         let (tol_t, tol_s) = moment_tolerances(h.d);
         let target = |se: [f64; 2]| PlaneTarget {
             mean_t: 1.3,
@@ -873,11 +878,7 @@ mod tests {
 
     #[test]
     fn jacobian_matches_numerical() {
-        let h = noisy(
-            &histogram_of(&truth3(), &template(3.0, (-2.0, 5.0, 14), (2.5, 7), 0)),
-            100_000,
-            11,
-        );
+        let h = noisy_truth3();
         let mut with_moments = h.clone();
         with_moments.plane = Some(PlaneTarget {
             mean_t: 1.3,
