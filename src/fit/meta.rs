@@ -637,8 +637,8 @@ pub fn fit_meta_with(
 
 /// The joint fit of one vertex class started from a fitted `model`'s
 /// coefficients instead of the ladder of [`fit_meta_with`]: one stage
-/// ([`solve_stage`]) at `model`'s K and degrees, with the per-cell fits
-/// for the report. For new data over the same box (a re-planned or
+/// (three initial dampings, the lowest χ² kept) at `model`'s K and
+/// degrees, with the per-cell fits for the report. For new data over the same box (a re-planned or
 /// topped-up tally): the ladder climbs from the new per-cell fits, whose
 /// components trade roles differently, and may settle in another valley.
 /// Measured on the wide box (129 cells of a re-planned tally, all
