@@ -1549,11 +1549,14 @@ fn fit(f: Fit) -> Result<()> {
                     moment_errors,
                 },
                 true,
-            )
-            .with_context(|| match &from {
-                Some(m) => format!("refitting {} from {}", input.display(), m.display()),
-                None => format!("fitting {}", input.display()),
-            })?;
+            );
+            // The starting model is the one input a library error does not name.
+            let r = match &from {
+                Some(m) => r.with_context(|| {
+                    format!("refitting {} from {}", input.display(), m.display())
+                })?,
+                None => r?,
+            };
             print!("{}", fit_kernels::aggregation_summary(&r.aggregation));
             for j in &r.joint {
                 println!(
