@@ -738,9 +738,11 @@ enum Fit {
         #[arg(long, value_delimiter = ',', default_value = "4,5",
               value_parser = RangedU64ValueParser::<usize>::new().range(1..=5))]
         components: Vec<usize>,
-        /// Polynomial degrees in ln d and sqrt(1 − α), e.g. 3,3.
-        #[arg(long, value_delimiter = ',', default_value = "4,3")]
-        degree: Vec<usize>,
+        /// Polynomial degrees in ln d and sqrt(1 − α), e.g. 3,3 [default:
+        /// 4,3]. With --from: raise the model's degrees to these (the new
+        /// coefficients start at zero).
+        #[arg(long, value_delimiter = ',')]
+        degree: Option<Vec<usize>>,
         /// Fit the first- and last-vertex histograms summed onto a grid this
         /// many times finer than the all-vertex one (a divisor of the tally's
         /// own; exact, one vertex of each per path): fewer bins, a faster fit.
@@ -750,7 +752,7 @@ enum Fit {
         /// at its K and degrees, instead of climbing from per-cell fits: a
         /// refit of a new tally over the model's box (its box, g and η
         /// must be the tally's).
-        #[arg(long, conflicts_with_all = ["components", "degree"])]
+        #[arg(long, conflicts_with = "components")]
         from: Option<PathBuf>,
         /// Let the whole-plane moment residuals allow for the data's own
         /// standard errors (each tolerance τ becomes sqrt(τ² + se²)): for
@@ -949,6 +951,13 @@ struct KernelArgs {
     /// 0.9,0.97), for far cells at low albedo.
     #[arg(long, value_delimiter = ',')]
     angular: Vec<f64>,
+    /// With --min-paths: a top-up round pilots again the albedos of the
+    /// cells still short. A cell whose runs delivered less than half the
+    /// effective paths per unit of work that their sampling's pilot
+    /// promised moves to another flight sampling whose pilot promises twice
+    /// what they delivered (its tally from them is then dropped).
+    #[arg(long)]
+    replan: bool,
     /// With --min-paths: top up this finished tally instead of planning a
     /// new one. Its configuration (medium, cells, grid, seed and runs) and
     /// paths are kept, and only the cells below --min-paths get more paths,
@@ -1051,6 +1060,13 @@ fn simulate_kernels(a: KernelArgs) -> Result<()> {
         runs: Vec::new(),
     };
     config.validate()?;
+    let plan = |target| kernel::PlanOptions {
+        target,
+        max_paths: a.run.paths,
+        angular_fractions: a.angular.clone(),
+        replan: a.replan,
+        ..Default::default()
+    };
     let (config, tally, wall_s) = match (a.min_paths, &a.from) {
         (Some(target), Some(from)) => {
             let doc = KernelDoc::load(from)?;
@@ -1061,19 +1077,14 @@ fn simulate_kernels(a: KernelArgs) -> Result<()> {
                 );
             }
             let start = Rounds::finished(doc.config, doc.tally, doc.wall_s);
-            run_with_top_ups(start, target, a.run.paths, a.top_ups, &a.run.out, &opts)?
+            run_with_top_ups(start, &plan(target), a.top_ups, &a.run.out, &opts)?
         }
         (None, _) => {
             let (tally, wall_s) = config.run(shard, &opts)?;
             (config, tally, wall_s)
         }
         (Some(target), None) => {
-            let plan = kernel::PlanOptions {
-                target,
-                max_paths: a.run.paths,
-                angular_fractions: a.angular.clone(),
-                ..Default::default()
-            };
+            let plan = plan(target);
             let (planned, cells) = config.plan(&plan, opts.progress)?;
             print_plan(&planned, &cells);
             if shard.is_some() {
@@ -1082,7 +1093,7 @@ fn simulate_kernels(a: KernelArgs) -> Result<()> {
                 (planned, tally, wall_s)
             } else {
                 let start = Rounds::planned(planned);
-                run_with_top_ups(start, target, a.run.paths, a.top_ups, &a.run.out, &opts)?
+                run_with_top_ups(start, &plan, a.top_ups, &a.run.out, &opts)?
             }
         }
     };
@@ -1138,8 +1149,7 @@ impl Rounds {
 /// short. Each finished round is kept in `OUT.rounds`.
 fn run_with_top_ups(
     start: Rounds,
-    target: f64,
-    max_paths: u64,
+    plan: &kernel::PlanOptions,
     top_ups: usize,
     out: &std::path::Path,
     opts: &RunOptions,
@@ -1166,18 +1176,29 @@ fn run_with_top_ups(
         svkernel::jobs::store::write_json_compact_atomic(&rounds_path, &state)?;
         remove_checkpoint(out)?;
         let tally = state.tally.as_mut().expect("the start has run");
-        let Some(grown) = state.config.top_up(tally, target, max_paths) else {
+        let Some(grown) = state.config.top_up(tally, plan)? else {
             break;
         };
         let range = (state.config.chunks(), grown.chunks());
+        let new_runs = &grown.runs[state.config.runs.len()..];
+        let moved = (0..grown.albedos.len())
+            .flat_map(|ia| (0..grown.distances.len()).map(move |id| (ia, id)))
+            .filter(|&(ia, id)| {
+                grown.run_of(ia, id).map(|r| r.flights)
+                    != state.config.run_of(ia, id).map(|r| r.flights)
+            })
+            .count();
         eprintln!(
-            "top-up {}: {} more paths for {} cells below {target} effective paths",
+            "top-up {}: {} more paths for {} cells below {} effective paths{}",
             state.round + 1,
             grown.paths - state.config.paths,
-            grown.runs[state.config.runs.len()..]
-                .iter()
-                .map(|r| r.distances.len())
-                .sum::<usize>()
+            new_runs.iter().map(|r| r.distances.len()).sum::<usize>(),
+            plan.target,
+            if moved > 0 {
+                format!(" ({moved} moved to another flight sampling)")
+            } else {
+                String::new()
+            }
         );
         let (extra, wall_s) = grown.run_chunks(range, opts)?;
         use svkernel::forward::runner::Tally as _;
@@ -1526,12 +1547,12 @@ fn fit(f: Fit) -> Result<()> {
                 [all, last] => Components { all, last },
                 _ => bail!("invalid --components: give K or K_ALL,K_LAST, e.g. 4,5"),
             };
-            let [dx, dy] = degree[..] else {
-                bail!("invalid --degree: give two degrees, e.g. 3,3");
+            let degree = match degree.as_deref() {
+                None => None,
+                Some(&[dx, dy]) if dx <= 7 && dy <= 7 => Some((dx, dy)),
+                Some(&[dx, dy]) => bail!("invalid --degree {dx},{dy}: each must be <= 7"),
+                Some(_) => bail!("invalid --degree: give two degrees, e.g. 3,3"),
             };
-            if dx > 7 || dy > 7 {
-                bail!("invalid --degree {dx},{dy}: each must be <= 7");
-            }
             let dir = dir.unwrap_or_else(|| {
                 out.parent()
                     .unwrap_or(std::path::Path::new("."))
@@ -1543,7 +1564,7 @@ fn fit(f: Fit) -> Result<()> {
                 &dir,
                 &fit_kernels::KernelFitOptions {
                     components,
-                    degree: (dx, dy),
+                    degree,
                     vertex_refine,
                     start: from.clone(),
                     moment_errors,

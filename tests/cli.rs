@@ -892,6 +892,37 @@ fn fit_kernels_writes_under_out_by_default() {
             chi2(&fit)
         );
     }
+    // Raised degrees start from the model's polynomials, so the refit ends
+    // no higher either; degrees below the model's are refused.
+    let o = bin()
+        .current_dir(&d)
+        .args(["fit", "kernels", "--from", "out/fit/metamodel.json"])
+        .args(["--degree", "2,1", "--out", "raised/metamodel.json", "--in"])
+        .arg(&tally)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let raised = report("raised/metamodel_report/report.json");
+    assert_eq!(raised["degree"], serde_json::json!([2, 1]));
+    for class in 0..2 {
+        let chi2 = |r: &serde_json::Value| r["joint"][class]["chi2"].as_f64().unwrap();
+        assert!(
+            chi2(&raised) <= chi2(&fit),
+            "{} > {}",
+            chi2(&raised),
+            chi2(&fit)
+        );
+    }
+    let o = bin()
+        .current_dir(&d)
+        .args(["fit", "kernels", "--from", "raised/metamodel.json"])
+        .args(["--degree", "1,1", "--out", "lower/metamodel.json", "--in"])
+        .arg(&tally)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("degrees"), "{err}");
+    assert!(!d.join("lower/metamodel.json").exists());
     // The shipped model's box is not this tally's: a clear error.
     let shipped_model = concat!(env!("CARGO_MANIFEST_DIR"), "/data/profiles/metamodel.json");
     let o = bin()
@@ -1043,6 +1074,20 @@ fn kernel_top_up_from_a_finished_tally() {
     assert_eq!(after[..before.len()], before[..]);
     assert!(topped["paths"].as_u64().unwrap() > plan["paths"].as_u64().unwrap());
     assert!(!d.join("topped.json.rounds").exists() && !d.join("topped.json.ckpt").exists());
+    // So does a round that may move cells to another sampling.
+    let (topped, _) = run(
+        &[
+            "--top-ups",
+            "1",
+            "--replan",
+            "--from",
+            from.to_str().unwrap(),
+        ],
+        "topped_replan.json",
+    );
+    let (direct, _) = run(&["--top-ups", "1", "--replan"], "direct_replan.json");
+    assert_eq!(topped["config"], direct["config"]);
+    assert_eq!(topped["tally"], direct["tally"]);
 
     // A missing tally is an error that names the file, and nothing is written.
     let o = bin()

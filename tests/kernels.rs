@@ -213,7 +213,7 @@ fn a_plan_fills_the_cells_analog_walks_miss() {
         planned.run(None, &RunOptions::default()).unwrap().0,
     );
     for _ in 0..3 {
-        let Some(grown) = config.top_up(&tally, opts.target, opts.max_paths) else {
+        let Some(grown) = config.top_up(&mut tally, &opts).unwrap() else {
             break;
         };
         let range = (config.chunks(), grown.chunks());
@@ -232,6 +232,64 @@ fn a_plan_fills_the_cells_analog_walks_miss() {
     }
     // Planning is deterministic.
     assert_eq!(c.plan(&opts, false).unwrap().0, planned);
+}
+
+#[test]
+fn a_top_up_moves_a_cell_its_sampling_starves() {
+    // Analog walks at α = 0.2 reach d = 4 MFP (after two scatterings) about
+    // once in 4·10⁴ paths: a plan that left the cell to them delivers next
+    // to nothing there. A plain top-up asks for the most paths one run may
+    // have and still falls short; a re-planning one moves the cell to a
+    // transformed sampling, drops the analog run's few paths there, and
+    // fills it.
+    let mut c = config(&[0.2], &[4.0], 1.0, 0, 47);
+    let analog = KernelRun {
+        albedo: 0,
+        distances: vec![0],
+        flights: Flights::ANALOG,
+        unit_log2: 0,
+        paths: 1 << 17,
+    };
+    c.paths = analog.paths;
+    c.runs = vec![analog];
+    let opts = PlanOptions {
+        target: 300.0,
+        max_paths: 1 << 21,
+        ..Default::default()
+    };
+    let run = |c: &KernelConfig, range| c.run_chunks(range, &RunOptions::default()).unwrap().0;
+    let first = run(&c, (0, c.chunks()));
+    assert!(first.cells[0][0].effective_paths() < 10.0);
+
+    let plain = c.top_up(&mut first.clone(), &opts).unwrap().unwrap();
+    assert_eq!(plain.runs[1].flights, Flights::ANALOG);
+    assert_eq!(plain.runs[1].paths, opts.max_paths);
+
+    let replan = PlanOptions {
+        replan: true,
+        ..opts
+    };
+    let mut tally = first.clone();
+    let grown = c.top_up(&mut tally, &replan).unwrap().unwrap();
+    // The analog run feeds nothing now (and walks nothing); the new one
+    // feeds the cell, from an empty tally.
+    assert!(grown.runs[0].distances.is_empty());
+    assert_eq!(grown.runs[1].distances, vec![0]);
+    assert_ne!(grown.runs[1].flights, Flights::ANALOG);
+    assert!(grown.runs[1].paths < opts.max_paths);
+    assert_eq!(tally.cells[0][0].effective_paths(), 0.0);
+    assert_eq!(tally.paths, first.paths);
+    tally.merge(&run(&grown, (c.chunks(), grown.chunks())));
+    // The same, bitwise, as the grown configuration run at once.
+    assert_eq!(run(&grown, (0, grown.chunks())), tally);
+    let n_eff = tally.cells[0][0].effective_paths();
+    assert!(n_eff > 0.5 * replan.target, "{n_eff} effective paths");
+    // Still short of the target, but within the gain of its pilot's promise:
+    // a further round tops the cell up with the same sampling.
+    let g = grown.top_up(&mut tally.clone(), &replan).unwrap().unwrap();
+    assert_eq!(g.runs.len(), 3);
+    assert_eq!(g.runs[2].flights, grown.runs[1].flights);
+    assert_eq!(g.runs[2].distances, vec![0]);
 }
 
 /// The bound on the exponential transform's bias: at g = 0 it is the root
@@ -266,6 +324,7 @@ fn a_plan_walks_no_exponential_transform_beyond_its_bound() {
         bias_fractions: vec![0.6],
         stretch_fractions: Vec::new(),
         angular_fractions: Vec::new(),
+        replan: false,
     };
     let (planned, cells) = c.plan(&opts, false).unwrap();
     assert_eq!(cells.len(), 2);
@@ -331,6 +390,7 @@ fn a_plan_walks_no_stretch_beyond_its_bound() {
         bias_fractions: Vec::new(),
         stretch_fractions: vec![0.6],
         angular_fractions: Vec::new(),
+        replan: false,
     };
     let (planned, cells) = cfg.plan(&opts, false).unwrap();
     assert_eq!(cells.len(), 2);

@@ -601,7 +601,10 @@ fn fit_kernels(
     let doc: KernelDoc = lib(svkernel::doc::from_json(tally, Path::new("<tally>")))?;
     let start_file = start.map(|m| Arc::clone(&m.inner));
     let from = match &start_file {
-        Some(f) => FitStart::From(f),
+        Some(f) => FitStart::From {
+            model: f,
+            degree: None,
+        },
         None => FitStart::Ladder {
             components: components.into(),
             degree: degrees,

@@ -869,10 +869,14 @@ pub enum FitStart<'a> {
         components: Components,
         degree: (usize, usize),
     },
-    /// From a fitted meta-model's coefficients, at its K and degrees
+    /// From a fitted meta-model's coefficients, at its K and at its degrees
+    /// or raised to `degree` (the new coefficients zero, [`raise_degree`]),
     /// ([`refit_meta`]): a refit of new data over the same box. Its medium
     /// (g, η) must be the tally's; its outer model is not carried over.
-    From(&'a MetaModelFile),
+    From {
+        model: &'a MetaModelFile,
+        degree: Option<(usize, usize)>,
+    },
 }
 
 /// [`fit_metamodel`] from `start`, with the moment residuals allowing for
@@ -883,7 +887,22 @@ pub fn fit_metamodel_with(
     moment_errors: bool,
     progress: bool,
 ) -> crate::Result<(MetaModelFile, MetaModelFit)> {
-    if let FitStart::From(f) = start
+    if let FitStart::From {
+        model: f,
+        degree: Some(deg),
+    } = start
+        && (deg.0 < f.all.deg_x.max(f.last.deg_x) || deg.1 < f.all.deg_y.max(f.last.deg_y))
+    {
+        return Err(FitError::BadData {
+            what: "meta-model".into(),
+            msg: format!(
+                "degrees ({}, {}) below the starting model's ({}, {}): a refit only raises them",
+                deg.0, deg.1, f.all.deg_x, f.all.deg_y
+            ),
+        }
+        .into());
+    }
+    if let FitStart::From { model: f, .. } = start
         && (f.g != doc.config.g || f.eta != doc.config.eta)
     {
         return Err(FitError::BadData {
@@ -924,12 +943,15 @@ pub fn fit_metamodel_with(
                 &what,
                 Some(&task),
             ),
-            FitStart::From(f) => {
+            FitStart::From { model: f, degree } => {
                 let m = match class {
                     VertexClass::Last => &f.last,
                     _ => &f.all,
                 };
-                refit_meta(&cs, m, &what, Some(&task))
+                match degree {
+                    Some(deg) => refit_meta(&cs, &raise_degree(m, *deg), &what, Some(&task)),
+                    None => refit_meta(&cs, m, &what, Some(&task)),
+                }
             }
         }
         .map(|r| (class, cs, r))

@@ -593,7 +593,9 @@ pub struct KernelConfig {
 /// One run of a planned kernel simulation: `paths` paths walked at albedo
 /// `albedo` (an index into [`KernelConfig::albedos`]) with flights drawn as
 /// `flights` says ([`walk_transformed`]), feeding the distance cells `distances`
-/// (indices into [`KernelConfig::distances`]; a cell is fed by one run).
+/// (indices into [`KernelConfig::distances`]). The runs that feed one cell
+/// share flights and unit: the plan's and its top-ups'. A run whose cells a
+/// top-up moved to another sampling ([`PlanOptions::replan`]) feeds none.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct KernelRun {
     pub albedo: usize,
@@ -652,6 +654,11 @@ pub struct PlanOptions {
     /// their weights stay near-constant over long paths, which fills the
     /// far cells of mid albedo that the transform alone leaves heavy-tailed.
     pub angular_fractions: Vec<f64>,
+    /// In a top-up round ([`KernelConfig::top_up`]), move a cell that fell
+    /// short, because its sampling delivered far less than its pilot
+    /// promised, to another of these samplings ([`REPLAN_GAIN`]): a pilot
+    /// misjudges heavy-tailed weights, and the run's numbers show it.
+    pub replan: bool,
 }
 
 impl Default for PlanOptions {
@@ -678,6 +685,7 @@ impl Default for PlanOptions {
             bias_fractions: vec![0.6, 0.85],
             stretch_fractions: vec![0.6, 0.85],
             angular_fractions: Vec::new(),
+            replan: false,
         }
     }
 }
@@ -695,6 +703,32 @@ pub struct PlannedCell {
     /// Effective contributing paths the run should give it.
     pub expected: f64,
 }
+
+/// The paths of a run whose cells give `per_path` effective paths per path
+/// launched: enough for the neediest to reach `opts.target`, at most
+/// `opts.max_paths`, in whole chunks (at least one).
+fn run_paths(per_path: impl Iterator<Item = f64>, opts: &PlanOptions) -> u64 {
+    let need = per_path
+        .map(|r| {
+            if r > 0.0 {
+                opts.target / r
+            } else {
+                f64::INFINITY
+            }
+        })
+        .fold(0.0, f64::max);
+    let chunk = runner::CHUNK_PATHS;
+    (need.ceil().min(opts.max_paths as f64) as u64)
+        .div_ceil(chunk)
+        .max(1)
+        * chunk
+}
+
+/// A top-up with [`PlanOptions::replan`] moves a short cell whose runs
+/// delivered less than 1/this of what their sampling's pilot promised (in
+/// effective paths per unit of work) to another sampling whose pilot
+/// promises this many times what the runs delivered.
+pub const REPLAN_GAIN: f64 = 2.0;
 
 /// A pilot cell needs this many contributing paths before its rate counts.
 const PILOT_MIN_PATHS: u64 = 30;
@@ -728,6 +762,27 @@ impl Pilot {
             self.sum[id] * self.sum[id] / self.sum_sq[id]
         } else {
             0.0
+        }
+    }
+
+    /// Effective paths of cell `id` per unit of work (0 where the pilot saw
+    /// fewer than [`PILOT_MIN_PATHS`] there).
+    fn rate(&self, id: usize) -> f64 {
+        if self.count[id] < PILOT_MIN_PATHS {
+            0.0
+        } else {
+            self.ess(id) / self.work
+        }
+    }
+
+    /// The weight unit of a run with flights `f` over the cells `ids`: the
+    /// median contributing weight at 2^[`TYPICAL_WEIGHT_LOG2`].
+    fn unit_log2(&self, f: Flights, ids: &[usize]) -> u32 {
+        if f == Flights::ANALOG {
+            0
+        } else {
+            let m = self.median_weight(ids);
+            (TYPICAL_WEIGHT_LOG2 - m.log2()).round().clamp(0.0, 60.0) as u32
         }
     }
 
@@ -781,60 +836,150 @@ impl KernelConfig {
         }
     }
 
-    /// The plan grown where `tally` (of this configuration) fell short: for
-    /// every run with cells below `target` effective paths, a new run (own
-    /// streams, same flights and unit) over those cells with the paths that
-    /// bring the neediest to `target` at the rate seen so far, at most
-    /// `max_paths` (and at least one chunk). `None` if every cell has its
-    /// paths or none can get more. Pilots misjudge heavy-tailed weights;
-    /// this corrects with the real run's numbers.
-    pub fn top_up(&self, tally: &KernelTally, target: f64, max_paths: u64) -> Option<KernelConfig> {
+    /// The plan grown where `tally` (of this configuration) fell short of
+    /// `opts.target` effective paths (by more than 10 %). Each short cell is
+    /// topped up by a new run (own streams, same flights and unit as the
+    /// cell's first run, one per run) with the paths that bring the neediest
+    /// of its cells to the target at the rate seen so far, at most
+    /// `opts.max_paths` (and at least one chunk). Pilots misjudge
+    /// heavy-tailed weights; this corrects with the real run's numbers.
+    ///
+    /// With `opts.replan`, the albedos of the short cells are piloted again
+    /// ([`KernelConfig::plan`]'s candidates and streams). A short cell whose
+    /// runs delivered less than 1/[`REPLAN_GAIN`] of the effective paths per
+    /// unit of work that their own sampling's pilot promised (their work per
+    /// path taken from that pilot), or whose pilot saw too few paths there
+    /// to promise anything, moves to the best other candidate, if its
+    /// pilot promises [`REPLAN_GAIN`] times what the runs delivered: its old
+    /// runs stop feeding it (a run left with no cell walks no path), its
+    /// tally is emptied, and a new run sized by that pilot fills it. So
+    /// `tally` becomes the grown configuration's tally over the chunks
+    /// already run, and merging the new runs' chunks gives, bitwise, the
+    /// grown configuration run at once.
+    ///
+    /// `None` if every cell has its paths or none can get more.
+    pub fn top_up(
+        &self,
+        tally: &mut KernelTally,
+        opts: &PlanOptions,
+    ) -> Result<Option<KernelConfig>> {
+        let short = |ia: usize, id: usize| {
+            self.run_of(ia, id).is_some()
+                && tally.cells[ia][id].effective_paths() < 0.9 * opts.target
+        };
+        if opts.max_paths < runner::CHUNK_PATHS {
+            return Ok(None);
+        }
+        let mut runs = self.runs.clone();
         let mut extra = Vec::new();
+        let mut moved = Vec::new();
+        if opts.replan {
+            for ia in 0..self.albedos.len() {
+                let ids: Vec<usize> = (0..self.distances.len())
+                    .filter(|&id| short(ia, id))
+                    .collect();
+                if ids.is_empty() {
+                    continue;
+                }
+                let cands = self.candidates(ia, opts)?;
+                let (pilot, stats) = self.pilots(ia, &cands, opts);
+                // Each cell to the candidate that beats its runs by the gain.
+                let mut to: Vec<(usize, usize)> = Vec::new();
+                for &id in &ids {
+                    let own = self.run_of(ia, id).expect("short cells have a run").flights;
+                    let Some(k) = cands.iter().position(|c| c.1 == own) else {
+                        continue;
+                    };
+                    let work = self.launched_for(ia, id) as f64 * stats[k].work / pilot as f64;
+                    let delivered = tally.cells[ia][id].effective_paths() / work;
+                    // Only a sampling that fell short of its own pilot's promise
+                    // by the gain moves (or one whose pilot saw too few paths
+                    // here to promise anything): one that delivers about what
+                    // its pilot said is merely slow, and the others' pilots may
+                    // overrate them just as much.
+                    let promised = stats[k].rate(id);
+                    if promised > 0.0 && promised <= REPLAN_GAIN * delivered {
+                        continue;
+                    }
+                    let best = (0..stats.len())
+                        .filter(|&j| j != k)
+                        .max_by(|&a, &b| stats[a].rate(id).total_cmp(&stats[b].rate(id)));
+                    if let Some(j) = best.filter(|&j| stats[j].rate(id) > REPLAN_GAIN * delivered) {
+                        to.push((id, j));
+                    }
+                }
+                for (j, stat) in stats.iter().enumerate() {
+                    let ids: Vec<usize> = to.iter().filter(|t| t.1 == j).map(|t| t.0).collect();
+                    if ids.is_empty() {
+                        continue;
+                    }
+                    let f = cands[j].1;
+                    extra.push(KernelRun {
+                        albedo: ia,
+                        distances: ids.clone(),
+                        flights: f,
+                        unit_log2: stat.unit_log2(f, &ids),
+                        paths: run_paths(ids.iter().map(|&id| stat.ess(id) / pilot as f64), opts),
+                    });
+                    moved.extend(ids.into_iter().map(|id| (ia, id)));
+                }
+            }
+        }
         for r in &self.runs {
-            let short: Vec<usize> = r
+            let ids: Vec<usize> = r
                 .distances
                 .iter()
                 .copied()
                 .filter(|&id| {
                     // Each cell topped up by its first run only.
                     self.run_of(r.albedo, id) == Some(r)
-                        && tally.cells[r.albedo][id].effective_paths() < 0.9 * target
+                        && short(r.albedo, id)
+                        && !moved.contains(&(r.albedo, id))
                 })
                 .collect();
-            let need = short
+            if ids.is_empty() {
+                continue;
+            }
+            // The paths that bring the neediest to the target at its rate.
+            let need = ids
                 .iter()
                 .map(|&id| {
                     let ess = tally.cells[r.albedo][id].effective_paths();
                     let launched = self.launched_for(r.albedo, id) as f64;
                     if ess > 0.0 {
-                        ((target / ess - 1.0) * launched).ceil()
+                        ((opts.target / ess - 1.0) * launched).ceil()
                     } else {
                         f64::INFINITY
                     }
                 })
                 .fold(0.0, f64::max);
             let chunk = runner::CHUNK_PATHS;
-            if short.is_empty() || max_paths < chunk {
-                continue;
-            }
             extra.push(KernelRun {
-                albedo: r.albedo,
-                distances: short,
-                flights: r.flights,
-                unit_log2: r.unit_log2,
-                paths: (need.min(max_paths as f64) as u64).div_ceil(chunk).max(1) * chunk,
+                distances: ids,
+                paths: (need.min(opts.max_paths as f64) as u64)
+                    .div_ceil(chunk)
+                    .max(1)
+                    * chunk,
+                ..r.clone()
             });
         }
         if extra.is_empty() {
-            return None;
+            return Ok(None);
         }
-        let mut runs = self.runs.clone();
+        for &(ia, id) in &moved {
+            for r in runs.iter_mut().filter(|r| r.albedo == ia) {
+                r.distances.retain(|&x| x != id);
+            }
+            tally.cells[ia][id] = CellTally::new(&self.grid);
+        }
         runs.extend(extra);
-        Some(KernelConfig {
+        let grown = KernelConfig {
             paths: runs.iter().map(|r| r.paths).sum(),
             runs,
             ..self.clone()
-        })
+        };
+        grown.validate()?;
+        Ok(Some(grown))
     }
 
     /// The medium at albedo `alpha` (validated).
@@ -916,8 +1061,8 @@ impl KernelConfig {
     fn validate_runs(&self) -> Result<()> {
         let mut fed = vec![vec![None; self.distances.len()]; self.albedos.len()];
         for r in &self.runs {
+            // A run may feed no cell: a top-up moved its cells away.
             let cells_ok = r.albedo < self.albedos.len()
-                && !r.distances.is_empty()
                 && r.distances.iter().all(|&id| {
                     id < self.distances.len()
                         && *fed[r.albedo][id].get_or_insert((r.flights, r.unit_log2))
@@ -1010,6 +1155,11 @@ impl KernelConfig {
         };
         let local = c - (offset - run.paths.div_ceil(runner::CHUNK_PATHS));
         let (first, count) = chunk_paths(run.paths, local);
+        if run.distances.is_empty() {
+            // Its cells moved to another sampling: its paths would feed none.
+            tally.paths += count;
+            return tally;
+        }
         let medium = self.medium(self.albedos[run.albedo]).expect("validated");
         let albedo = UniformAlbedo(threshold_u32(self.albedos[run.albedo]));
         let mut feeds = vec![false; self.distances.len()];
@@ -1123,81 +1273,19 @@ impl KernelConfig {
             crate::progress::Task::new(progress, "planning", self.albedos.len() as u64, "albedos");
         let (mut runs, mut cells) = (Vec::new(), Vec::new());
         for ia in 0..self.albedos.len() {
-            // The candidates: the given samplings whose weights keep a
-            // bounded variance over long paths (a pilot cannot see an
-            // unbounded one, and would size its run on a variance estimate
-            // that does not converge), then the exponential transforms and
-            // the stretches at the given fractions of this albedo's bounds.
-            // Each keeps its own pilot streams, by its index among all
-            // candidates.
-            let alpha = self.albedos[ia];
-            let beta_max = max_bias(alpha, self.g);
-            let c_max = max_stretch_offset(alpha);
-            let stretched = opts.stretch_fractions.iter().flat_map(|&q| {
-                [0, 2].map(|forced| Flights {
-                    stretch: 1.0 + q * c_max,
-                    bias: 0.0,
-                    forced,
-                    angular: false,
-                })
-            });
-            let cands: Vec<(usize, Flights)> = opts
-                .flights
-                .iter()
-                .copied()
-                .chain(opts.bias_fractions.iter().map(|&q| Flights {
-                    stretch: 1.0,
-                    bias: q * beta_max,
-                    forced: 2,
-                    angular: false,
-                }))
-                .chain(stretched)
-                .chain(opts.angular_fractions.iter().map(|&q| Flights {
-                    stretch: 1.0,
-                    bias: q * beta_max,
-                    forced: 0,
-                    angular: true,
-                }))
-                .enumerate()
-                .filter(|(_, f)| f.bounded_weights(alpha, self.g))
-                .collect();
-            if cands.is_empty() {
-                return Err(Error::param(
-                    "flights",
-                    format!("(none bounded at albedo {alpha})"),
-                    "a flight sampling within max_bias(albedo, g) and max_stretch_offset(albedo)",
-                ));
-            }
-            let mut pilot = opts.pilot.max(1);
-            let stats = loop {
-                let stats: Vec<Pilot> = cands
-                    .iter()
-                    .map(|&(ic, f)| base.pilot(ia, ic, f, pilot))
-                    .collect();
-                let thin = (0..nd).any(|id| stats.iter().all(|p| p.count[id] < PILOT_MIN_PATHS));
-                if !thin || pilot >= opts.pilot.max(1) * 64 {
-                    break stats;
-                }
-                pilot *= 8;
-            };
+            let cands = base.candidates(ia, opts)?;
+            let (pilot, stats) = base.pilots(ia, &cands, opts);
             // Each cell to its cheapest sampling (the first of equals).
             let mut choice: Vec<(usize, f64)> = Vec::with_capacity(nd);
             for id in 0..nd {
-                let rate = |p: &Pilot| {
-                    if p.count[id] < PILOT_MIN_PATHS {
-                        0.0
-                    } else {
-                        p.ess(id) / p.work
-                    }
-                };
                 let best = (0..stats.len()).fold(0, |b, ic| {
-                    if rate(&stats[ic]) > rate(&stats[b]) {
+                    if stats[ic].rate(id) > stats[b].rate(id) {
                         ic
                     } else {
                         b
                     }
                 });
-                let r = rate(&stats[best]);
+                let r = stats[best].rate(id);
                 // Unreached everywhere: the sampling that saw the most paths.
                 let ic = if r > 0.0 {
                     best
@@ -1218,27 +1306,9 @@ impl KernelConfig {
                 if ids.is_empty() {
                     continue;
                 }
-                let need = ids
-                    .iter()
-                    .map(|&id| {
-                        let per_path = choice[id].1;
-                        if per_path > 0.0 {
-                            (opts.target / per_path).ceil().min(u64::MAX as f64) as u64
-                        } else {
-                            u64::MAX
-                        }
-                    })
-                    .max()
-                    .unwrap_or(0);
-                let chunk = runner::CHUNK_PATHS;
-                let paths = need.min(opts.max_paths).div_ceil(chunk).max(1) * chunk;
+                let paths = run_paths(ids.iter().map(|&id| choice[id].1), opts);
                 let f = cands[ic].1;
-                let unit_log2 = if f == Flights::ANALOG {
-                    0
-                } else {
-                    let m = pilot_ic.median_weight(&ids);
-                    (TYPICAL_WEIGHT_LOG2 - m.log2()).round().clamp(0.0, 60.0) as u32
-                };
+                let unit_log2 = pilot_ic.unit_log2(f, &ids);
                 for &id in &ids {
                     cells.push(PlannedCell {
                         albedo: self.albedos[ia],
@@ -1267,6 +1337,79 @@ impl KernelConfig {
         };
         planned.validate()?;
         Ok((planned, cells))
+    }
+
+    /// The flight samplings a plan chooses from at albedo `ia`, each with its
+    /// index among all candidates (its pilot stream family): the given
+    /// samplings whose weights keep a bounded variance over long paths (a
+    /// pilot cannot see an unbounded one, and would size its run on a
+    /// variance estimate that does not converge), then the exponential
+    /// transforms, the stretches and the angular biases at the given
+    /// fractions of this albedo's bounds.
+    fn candidates(&self, ia: usize, opts: &PlanOptions) -> Result<Vec<(usize, Flights)>> {
+        let alpha = self.albedos[ia];
+        let beta_max = max_bias(alpha, self.g);
+        let c_max = max_stretch_offset(alpha);
+        let stretched = opts.stretch_fractions.iter().flat_map(|&q| {
+            [0, 2].map(|forced| Flights {
+                stretch: 1.0 + q * c_max,
+                bias: 0.0,
+                forced,
+                angular: false,
+            })
+        });
+        let cands: Vec<(usize, Flights)> = opts
+            .flights
+            .iter()
+            .copied()
+            .chain(opts.bias_fractions.iter().map(|&q| Flights {
+                stretch: 1.0,
+                bias: q * beta_max,
+                forced: 2,
+                angular: false,
+            }))
+            .chain(stretched)
+            .chain(opts.angular_fractions.iter().map(|&q| Flights {
+                stretch: 1.0,
+                bias: q * beta_max,
+                forced: 0,
+                angular: true,
+            }))
+            .enumerate()
+            .filter(|(_, f)| f.bounded_weights(alpha, self.g))
+            .collect();
+        if cands.is_empty() {
+            return Err(Error::param(
+                "flights",
+                format!("(none bounded at albedo {alpha})"),
+                "a flight sampling within max_bias(albedo, g) and max_stretch_offset(albedo)",
+            ));
+        }
+        Ok(cands)
+    }
+
+    /// The pilots of `cands` at albedo `ia`: `opts.pilot` paths each, 8× and
+    /// then 64× that while some cell sees too few paths under every
+    /// candidate. Returns the pilot paths per candidate and what each saw.
+    fn pilots(
+        &self,
+        ia: usize,
+        cands: &[(usize, Flights)],
+        opts: &PlanOptions,
+    ) -> (u64, Vec<Pilot>) {
+        let nd = self.distances.len();
+        let mut pilot = opts.pilot.max(1);
+        loop {
+            let stats: Vec<Pilot> = cands
+                .iter()
+                .map(|&(ic, f)| self.pilot(ia, ic, f, pilot))
+                .collect();
+            let thin = (0..nd).any(|id| stats.iter().all(|p| p.count[id] < PILOT_MIN_PATHS));
+            if !thin || pilot >= opts.pilot.max(1) * 64 {
+                return (pilot, stats);
+            }
+            pilot *= 8;
+        }
     }
 
     /// `paths` pilot paths at albedo `ia` with flights `f` (stream family `ic`).

@@ -40,19 +40,24 @@ pub struct KernelReport {
     pub wall_s: f64,
 }
 
+/// The polynomial degrees in ln d and √(1 − α) of a fit from the data alone
+/// (the shipped model's).
+pub const DEFAULT_DEGREE: (usize, usize) = (4, 3);
+
 /// How `svkernel fit kernels` fits ([`fit_kernels`]).
 #[derive(Clone, Debug)]
 pub struct KernelFitOptions {
     /// Gaussian components of the all- and last-vertex kernels.
     pub components: Components,
-    /// Polynomial degrees in ln d and √(1 − α).
-    pub degree: (usize, usize),
+    /// Polynomial degrees in ln d and √(1 − α). With `start`, `None` keeps
+    /// the model's, and degrees as high or higher raise them.
+    pub degree: Option<(usize, usize)>,
     /// Fit the first- and last-vertex histograms on a grid this many times
     /// finer than the all-vertex one, a divisor of the tally's own
     /// ([`KernelDoc::coarsen_vertices`]); `None`: the tally's grid.
     pub vertex_refine: Option<usize>,
     /// Start the joint fits from this fitted meta-model's coefficients, at
-    /// its K and degrees (`components` and `degree` are then not used): a
+    /// its K and its degrees or `degree` (`components` is then not used): a
     /// refit of new data over the model's box
     /// ([`crate::fit::meta::FitStart::From`]). `None`: from the data alone.
     pub start: Option<std::path::PathBuf>,
@@ -81,10 +86,13 @@ pub fn fit_kernels(
     }
     let start_file = opts.start.as_deref().map(MetaModelFile::load).transpose()?;
     let from = match &start_file {
-        Some(f) => FitStart::From(f),
+        Some(f) => FitStart::From {
+            model: f,
+            degree: opts.degree,
+        },
         None => FitStart::Ladder {
             components: opts.components,
-            degree: opts.degree,
+            degree: opts.degree.unwrap_or(DEFAULT_DEGREE),
         },
     };
     let (file, fit) = fit_metamodel_with(&doc, &from, opts.moment_errors, progress)?;
