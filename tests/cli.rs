@@ -864,74 +864,59 @@ fn fit_kernels_writes_under_out_by_default() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(d.join("out/fit/metamodel.json").exists());
     assert!(d.join("out/fit/metamodel_report/report.json").exists());
-    // A refit from that model starts where its fit ended, so it ends no
-    // higher, and its report names the start.
-    let o = bin()
-        .current_dir(&d)
-        .args(["fit", "kernels", "--from", "out/fit/metamodel.json"])
-        .args(["--out", "refit/metamodel.json", "--in"])
-        .arg(&tally)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // `fit kernels --from MODEL EXTRA… --out OUT`, in `d`.
+    let refit = |model: &str, extra: &[&str], out: &str| {
+        bin()
+            .current_dir(&d)
+            .args(["fit", "kernels", "--from", model])
+            .args(extra)
+            .args(["--out", out, "--in"])
+            .arg(&tally)
+            .output()
+            .unwrap()
+    };
     let report = |p: &str| -> serde_json::Value {
         serde_json::from_slice(&std::fs::read(d.join(p)).unwrap()).unwrap()
     };
-    let (fit, refit) = (
-        report("out/fit/metamodel_report/report.json"),
-        report("refit/metamodel_report/report.json"),
+    let fit = report("out/fit/metamodel_report/report.json");
+    let chi2 = |r: &serde_json::Value, class: usize| r["joint"][class]["chi2"].as_f64().unwrap();
+    // A refit from that model starts where its fit ended, so it ends no
+    // higher, and its report names the start; so do raised degrees, which
+    // start from the model's polynomials.
+    for (extra, out, degree) in [
+        (&[][..], "refit", fit["degree"].clone()),
+        (
+            &["--degree", "2,1"][..],
+            "raised",
+            serde_json::json!([2, 1]),
+        ),
+    ] {
+        let o = refit(
+            "out/fit/metamodel.json",
+            extra,
+            &format!("{out}/metamodel.json"),
+        );
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let r = report(&format!("{out}/metamodel_report/report.json"));
+        assert_eq!(r["start"], "out/fit/metamodel.json");
+        assert_eq!(r["degree"], degree);
+        for class in 0..2 {
+            let (a, b) = (chi2(&r, class), chi2(&fit, class));
+            assert!(a <= b, "{out}: {a} > {b}");
+        }
+    }
+    // Degrees below the model's are refused.
+    let o = refit(
+        "raised/metamodel.json",
+        &["--degree", "1,1"],
+        "lower/metamodel.json",
     );
-    assert_eq!(refit["start"], "out/fit/metamodel.json");
-    assert_eq!(refit["degree"], fit["degree"]);
-    for class in 0..2 {
-        let chi2 = |r: &serde_json::Value| r["joint"][class]["chi2"].as_f64().unwrap();
-        assert!(
-            chi2(&refit) <= chi2(&fit),
-            "{} > {}",
-            chi2(&refit),
-            chi2(&fit)
-        );
-    }
-    // Raised degrees start from the model's polynomials, so the refit ends
-    // no higher either; degrees below the model's are refused.
-    let o = bin()
-        .current_dir(&d)
-        .args(["fit", "kernels", "--from", "out/fit/metamodel.json"])
-        .args(["--degree", "2,1", "--out", "raised/metamodel.json", "--in"])
-        .arg(&tally)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let raised = report("raised/metamodel_report/report.json");
-    assert_eq!(raised["degree"], serde_json::json!([2, 1]));
-    for class in 0..2 {
-        let chi2 = |r: &serde_json::Value| r["joint"][class]["chi2"].as_f64().unwrap();
-        assert!(
-            chi2(&raised) <= chi2(&fit),
-            "{} > {}",
-            chi2(&raised),
-            chi2(&fit)
-        );
-    }
-    let o = bin()
-        .current_dir(&d)
-        .args(["fit", "kernels", "--from", "raised/metamodel.json"])
-        .args(["--degree", "1,1", "--out", "lower/metamodel.json", "--in"])
-        .arg(&tally)
-        .output()
-        .unwrap();
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("degrees"), "{err}");
     assert!(!d.join("lower/metamodel.json").exists());
     // The shipped model's box is not this tally's: a clear error.
     let shipped_model = concat!(env!("CARGO_MANIFEST_DIR"), "/data/profiles/metamodel.json");
-    let o = bin()
-        .current_dir(&d)
-        .args(["fit", "kernels", "--from", shipped_model])
-        .args(["--out", "bad/metamodel.json", "--in"])
-        .arg(&tally)
-        .output()
-        .unwrap();
+    let o = refit(shipped_model, &[], "bad/metamodel.json");
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success());
     assert!(

@@ -79,17 +79,18 @@ fn learned_kernels_beat_the_manual_kernel_where_it_matters() {
 
 #[test]
 fn the_outer_model_holds_the_wide_box() {
-    // On the wide tally's cells outside the shipped model's own box, the
-    // shipped model (its outer model answers there) against the same model
-    // without it (the queries clamp to the box's edge): the aggregation
-    // error and the whole-plane rms s across the axis. The last-vertex
-    // kernel changes fast across the box's edge and clamping it fails
-    // (measured: aggregation error 0.0270 against 0.0026, rms s within 10 %
-    // in 21 against 49 of 49 cells). The all-vertex kernel changes slowly,
-    // so clamping it costs little in aggregation error (0.0076 against
-    // 0.0080) but misses the moments (rms s within 10 % in 4 against 43);
-    // the outer model's one cell worse than the manual kernel is the
-    // corner α = 0.05, d = 20 MFP.
+    // On the wide tally's cells outside the shipped model's own box (all 50
+    // of them fitted), the shipped model (its outer model answers there)
+    // against the same model without it (the queries clamp to the box's
+    // edge): the aggregation error and the whole-plane rms s across the
+    // axis. The last-vertex kernel changes fast across the box's edge and
+    // clamping it fails (measured: aggregation error 0.0280 against 0.0025,
+    // rms s within 10 % in 21 against 49 cells). The all-vertex kernel
+    // changes slowly, so clamping it costs less there (0.0076 against
+    // 0.0061) but misses the moments (rms s within 10 % in 4 against 46).
+    // The outer model's two cells worse than the manual kernel are α = 0.05
+    // and 0.2 at d = 20 MFP, where it misplaces one of the two end lobes of
+    // the paths' vertices.
     let f = MetaModelFile::load(Path::new(META)).unwrap();
     let outer = f.outer.as_deref().expect("the shipped model carries one");
     assert_eq!(f.alpha_range(), outer.all.alpha_range);
@@ -110,7 +111,7 @@ fn the_outer_model_holds_the_wide_box() {
         };
         let (a, b) = (pick(&with), pick(&without));
         assert!(
-            a.len() >= 40 && a.len() == b.len(),
+            a.len() >= 50 && a.len() == b.len(),
             "{class:?}: {}",
             a.len()
         );
@@ -128,7 +129,7 @@ fn the_outer_model_holds_the_wide_box() {
         // 10 %, cells worse than the manual kernel)
         let (ratio, share, worse) = match class {
             VertexClass::Last => (0.2, 0.95, 0),
-            _ => (1.1, 0.85, 1),
+            _ => (0.9, 0.85, 2),
         };
         assert!(
             mean(&a) <= mean(&b) * ratio,
@@ -148,8 +149,17 @@ fn the_outer_model_holds_the_wide_box() {
             within(&a),
             within(&b)
         );
-        let losses = a.iter().filter(|r| r.meta >= r.manual).count();
-        assert!(losses <= worse, "{class:?}: {losses}");
+        let losses: Vec<(f64, f64)> = a
+            .iter()
+            .filter(|r| r.meta >= r.manual)
+            .map(|r| (r.alpha, r.d))
+            .collect();
+        assert!(losses.len() <= worse, "{class:?}: {losses:?}");
+        // Only in the far corner of the dark paths.
+        assert!(
+            losses.iter().all(|&(alpha, d)| alpha <= 0.2 && d >= 14.0),
+            "{class:?}: {losses:?}"
+        );
     }
     // Inside the box the shipped model answers, as before.
     for (x, y) in with.iter().zip(&without).filter(|(x, _)| !outside(x)) {

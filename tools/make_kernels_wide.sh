@@ -7,11 +7,15 @@
 # The box is α ∈ [0.05, 0.999] × d ∈ [0.05, 20] MFP: 10 albedos × 13 pair
 # distances on a window of ±6λ (bins of λ/4, as the shipped tally's), planned
 # per cell for 2000 effective contributing paths with the exponential
-# transform, the stretch and the angular bias on offer, and one top-up round
-# (docs/method.md §3). The fit sums the last-vertex histograms onto bins of
+# transform, the stretch and the angular bias on offer, and one top-up round;
+# then two more rounds that may move a cell whose sampling delivered far less
+# than its pilot promised to another sampling (--replan, docs/method.md §3):
+# that moves α = 0.2, d = 20 MFP from the exponential transform to the
+# angular bias. The fit sums the last-vertex histograms onto bins of
 # λ/8 (exact), four times fewer bins than the tally's λ/16, and lets the
 # moment residuals allow for the data's errors (--moment-errors). It refits
-# from the wide model already in data/profiles (--from), whose coefficients
+# at degrees (6, 5) from the wide model already in data/profiles (--from,
+# its degrees raised where lower), whose coefficients
 # start the joint fits where a climb from the new per-cell fits settles in a
 # poorer valley (docs/method.md §4); without one it fits from the data alone.
 #
@@ -29,9 +33,12 @@ if [ -z "${SKIP_SIM:-}" ]; then
     --nu 48 --nv 24 --extent 6 --rel-width 0.1 --min-order 2 --eta 1.5 --g 0.3 --density 1 \
     --min-paths 2000 --angular 0.8,0.9,0.97 --top-ups 1 --paths 4e8 --seed 3000 --resume \
     --out "$tally" | sed -n 1p
+  $bin simulate kernels --from "$tally" --min-paths 2000 --angular 0.8,0.9,0.97 \
+    --top-ups 2 --replan --paths 4e8 --resume --out "$tally" | sed -n 1p
 fi
 wide=data/profiles/metamodel_wide.json
-if [ -f "$wide" ]; then start=(--from "$wide"); else start=(--degree 5,4); fi
+start=(--degree 6,5)
+if [ -f "$wide" ]; then start+=(--from "$wide"); fi
 $bin fit kernels --in "$tally" "${start[@]}" --vertex-refine 2 --moment-errors \
   --out "$wide" --report data/profiles/metamodel_wide_report
 $bin fit outer --model data/profiles/metamodel.json --outer data/profiles/metamodel_wide.json \
