@@ -717,8 +717,14 @@ fn run_paths(per_path: impl Iterator<Item = f64>, opts: &PlanOptions) -> u64 {
             }
         })
         .fold(0.0, f64::max);
+    whole_chunks(need, opts.max_paths)
+}
+
+/// `need` paths rounded up to whole chunks, at most `max_paths` (rounded
+/// up too) and at least one chunk.
+fn whole_chunks(need: f64, max_paths: u64) -> u64 {
     let chunk = runner::CHUNK_PATHS;
-    (need.ceil().min(opts.max_paths as f64) as u64)
+    (need.ceil().min(max_paths as f64) as u64)
         .div_ceil(chunk)
         .max(1)
         * chunk
@@ -947,19 +953,15 @@ impl KernelConfig {
                     let ess = tally.cells[r.albedo][id].effective_paths();
                     let launched = self.launched_for(r.albedo, id) as f64;
                     if ess > 0.0 {
-                        ((opts.target / ess - 1.0) * launched).ceil()
+                        (opts.target / ess - 1.0) * launched
                     } else {
                         f64::INFINITY
                     }
                 })
                 .fold(0.0, f64::max);
-            let chunk = runner::CHUNK_PATHS;
             extra.push(KernelRun {
                 distances: ids,
-                paths: (need.min(opts.max_paths as f64) as u64)
-                    .div_ceil(chunk)
-                    .max(1)
-                    * chunk,
+                paths: whole_chunks(need, opts.max_paths),
                 ..r.clone()
             });
         }
