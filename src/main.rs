@@ -1579,6 +1579,22 @@ fn fit(f: Fit) -> Result<()> {
                 None => r?,
             };
             print!("{}", fit_kernels::aggregation_summary(&r.aggregation));
+            for (class, cells) in &r.stuck {
+                let list: Vec<String> = cells
+                    .iter()
+                    .map(|c| {
+                        format!(
+                            "α = {}, d = {} (χ² {:.0}, its own fit's {:.0})",
+                            c.alpha, c.d, c.chi2, c.own_chi2
+                        )
+                    })
+                    .collect();
+                println!(
+                    "{class}: {} stuck cell(s) refitted with a width floor first: {}",
+                    cells.len(),
+                    list.join("; ")
+                );
+            }
             for j in &r.joint {
                 println!(
                     "{}: {} after {} evaluations, χ²/dof = {:.3}, {:.1} s",

@@ -7,7 +7,7 @@ use crate::error::{Error, Result};
 use crate::fit::aggregation::{AggregationRow, aggregation_row};
 use crate::fit::gmm::histogram_of;
 use crate::fit::lm::FitReport;
-use crate::fit::meta::{Cell, Components, FitStart, PlaneMoments, fit_metamodel_with};
+use crate::fit::meta::{Cell, Components, FitStart, PlaneMoments, StuckCell, fit_metamodel_with};
 use crate::forward::kernel::{KernelDoc, VertexClass};
 use crate::metamodel::kernel::{Gmm, manual_kernel};
 use crate::metamodel::meta::MetaModelFile;
@@ -34,6 +34,10 @@ pub struct KernelReport {
     #[serde(default)]
     pub moment_errors: bool,
     pub joint: Vec<FitReport>,
+    /// The cells a refit found stuck and floored in a first stage, per
+    /// class ([`crate::fit::meta::refit_meta`]).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub stuck: Vec<(String, Vec<StuckCell>)>,
     /// Per-cell fit reports (or the error) per class.
     pub per_cell: Vec<(String, Vec<std::result::Result<FitReport, String>>)>,
     pub aggregation: Vec<AggregationRow>,
@@ -113,6 +117,7 @@ pub fn fit_kernels(
         start: opts.start.as_ref().map(|p| p.display().to_string()),
         moment_errors: opts.moment_errors,
         joint: fit.joint,
+        stuck: fit.stuck,
         per_cell: fit.per_cell,
         aggregation: fit.aggregation,
         wall_s: start.elapsed().as_secs_f64(),
