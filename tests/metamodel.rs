@@ -84,13 +84,13 @@ fn the_outer_model_holds_the_wide_box() {
     // against the same model without it (the queries clamp to the box's
     // edge): the aggregation error and the whole-plane rms s across the
     // axis. The last-vertex kernel changes fast across the box's edge and
-    // clamping it fails (measured: aggregation error 0.0280 against 0.0025,
+    // clamping it fails (measured: aggregation error 0.0280 against 0.0024,
     // rms s within 10 % in 21 against 49 cells). The all-vertex kernel
     // changes slowly, so clamping it costs less there (0.0076 against
-    // 0.0061) but misses the moments (rms s within 10 % in 4 against 46).
-    // The outer model's two cells worse than the manual kernel are α = 0.05
-    // and 0.2 at d = 20 MFP, where it misplaces one of the two end lobes of
-    // the paths' vertices.
+    // 0.0048) but misses the moments (rms s within 10 % in 4 against 46).
+    // The outer model beats the manual kernel in every cell, the far corner
+    // (α = 0.05 and 0.2 at d = 20 MFP, where a refit found its end lobes
+    // only with a width floor) included.
     let f = MetaModelFile::load(Path::new(META)).unwrap();
     let outer = f.outer.as_deref().expect("the shipped model carries one");
     assert_eq!(f.alpha_range(), outer.all.alpha_range);
@@ -126,10 +126,10 @@ fn the_outer_model_holds_the_wide_box() {
                 .count()
         };
         // (mean error against clamping's, share of cells with rms s within
-        // 10 %, cells worse than the manual kernel)
-        let (ratio, share, worse) = match class {
-            VertexClass::Last => (0.2, 0.95, 0),
-            _ => (0.9, 0.85, 2),
+        // 10 %)
+        let (ratio, share) = match class {
+            VertexClass::Last => (0.2, 0.95),
+            _ => (0.75, 0.9),
         };
         assert!(
             mean(&a) <= mean(&b) * ratio,
@@ -154,11 +154,9 @@ fn the_outer_model_holds_the_wide_box() {
             .filter(|r| r.meta >= r.manual)
             .map(|r| (r.alpha, r.d))
             .collect();
-        assert!(losses.len() <= worse, "{class:?}: {losses:?}");
-        // Only in the far corner of the dark paths.
         assert!(
-            losses.iter().all(|&(alpha, d)| alpha <= 0.2 && d >= 14.0),
-            "{class:?}: {losses:?}"
+            losses.is_empty(),
+            "{class:?}: worse than manual at {losses:?}"
         );
     }
     // Inside the box the shipped model answers, as before.

@@ -17,7 +17,9 @@
 # at degrees (6, 5) from the wide model already in data/profiles (--from,
 # its degrees raised where lower), whose coefficients
 # start the joint fits where a climb from the new per-cell fits settles in a
-# poorer valley (docs/method.md §4); without one it fits from the data alone.
+# poorer valley (docs/method.md §4); cells where that model is stuck are
+# refitted with a width floor first ("Stuck cells"). Without a wide model it
+# fits from the data alone.
 #
 #   bash tools/make_kernels_wide.sh             # tally, fit and the shipped model
 #   SKIP_SIM=1 bash tools/make_kernels_wide.sh  # refit an existing tally only

@@ -55,7 +55,7 @@ pub const PRUNE_RATIO: f64 = 10.0;
 /// its own per-cell fit's, plus its residual count (the χ² of a fit at
 /// χ²/dof = 1), so that cells the per-cell fit matches to noise are not
 /// flagged for noise ([`stuck_cells`]). Measured on the wide box (130
-/// cells, all vertices, the (6, 5) model of 2026-12-03): the two cells
+/// cells, all vertices, its earlier (6, 5) model): the two cells
 /// whose all-vertex lobe under x_i or x_e the joint fit had lost stood at
 /// 989× and 516× (χ² 10973 and 10866 against 11 and 21); the next cell at
 /// 62×.
@@ -695,7 +695,7 @@ pub fn fit_meta_with(
 /// Where `model` is stuck in some cells ([`stuck_cells`]), a first stage
 /// floors their widths at one bin of their own histogram (module docs,
 /// "Width floor"), and the stage above starts from its result. Measured on
-/// the wide box (all vertices, from the (6, 5) model of 2026-12-03, whose
+/// the wide box (all vertices, from its earlier (6, 5) model, whose
 /// two stuck cells at d = 20 MFP had lost a lobe): χ²/dof 0.98 → 0.76, the
 /// aggregation error 0.0057 / 0.039 → 0.0050 / 0.027 (mean / worst), and in
 /// the two cells 0.039 → 0.008 and 0.029 → 0.006. Flooring every cell
