@@ -619,6 +619,7 @@ fn fit_kernels(
             "chi2_per_dof": j.chi2_per_dof,
         })).collect::<Vec<_>>(),
         "aggregation": fit.aggregation,
+        "stuck": fit.stuck,
     });
     let model = MetaModel {
         inner: Arc::new(model),

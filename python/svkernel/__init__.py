@@ -531,7 +531,10 @@ def fit_kernels(
     and the fit report: the joint fits (``termination``, ``evaluations``,
     ``chi2_per_dof``) and every cell's aggregation error (``aggregation``:
     ``meta`` and ``manual`` are the RMS errors of the aggregated albedo, in
-    albedo units, of the meta-model and of the manual kernel).
+    albedo units, of the meta-model and of the manual kernel). A refit also
+    lists, per vertex class, the cells where ``start`` was stuck and which
+    it refitted with a width floor first (``stuck``: ``alpha``, ``d``, the
+    cell's ``chi2`` under ``start`` and its own per-cell fit's ``own_chi2``).
     """
     if not isinstance(tally, KernelSimulation):
         raise InvalidParameter("invalid tally: must be a KernelSimulation", key="tally")

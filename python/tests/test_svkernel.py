@@ -348,6 +348,9 @@ def test_simulate_and_fit_kernels_give_a_usable_meta_model(tmp_path):
     assert again.components == 2
     for a, b in zip(refit["joint"], report["joint"]):
         assert a["chi2_per_dof"] <= b["chi2_per_dof"]
+    # Any cell it calls stuck is far worse under the start than its own fit.
+    for _, cells in refit["stuck"]:
+        assert all(c["chi2"] > 100 * c["own_chi2"] for c in cells)
     # The shipped model's box is not this tally's.
     with pytest.raises(sk.FitError) as e:
         sk.fit_kernels(tally, start=sk.MetaModel.default())
