@@ -531,10 +531,11 @@ def fit_kernels(
     and the fit report: the joint fits (``termination``, ``evaluations``,
     ``chi2_per_dof``) and every cell's aggregation error (``aggregation``:
     ``meta`` and ``manual`` are the RMS errors of the aggregated albedo, in
-    albedo units, of the meta-model and of the manual kernel). A refit also
-    lists, per vertex class, the cells where ``start`` was stuck and which
-    it refitted with a width floor first (``stuck``: ``alpha``, ``d``, the
-    cell's ``chi2`` under ``start`` and its own per-cell fit's ``own_chi2``).
+    albedo units, of the meta-model and of the manual kernel). ``stuck``
+    lists, per vertex class, the cells where the joint fit's start (``start``,
+    or the top of the ladder of degrees) was stuck far above their own
+    per-cell fit and which it refitted with a width floor first (``alpha``,
+    ``d``, the cell's ``chi2`` there and its per-cell fit's ``own_chi2``).
     """
     if not isinstance(tally, KernelSimulation):
         raise InvalidParameter("invalid tally: must be a KernelSimulation", key="tally")

@@ -19,8 +19,9 @@
 //! σ = λ_c·√(e^{2ς} + f_c²), so ∂ln σ/∂ς = e^{2ς}/(e^{2ς} + f_c²) replaces
 //! the factor 1. A component far narrower than a bin moves its whole mass
 //! from bin to bin and feels no pull from mass two bins away; floored at a
-//! bin, it does. [`refit_meta`] floors the cells that are stuck that way
-//! ([`stuck_cells`]) in a first stage only.
+//! bin, it does. The cells stuck that way ([`stuck_cells`]) are floored in
+//! one stage only, followed by a plain one: at the start of a refit
+//! ([`refit_meta`]) and after the top rung of the ladder ([`fit_meta_with`]).
 
 use super::gmm::{GmmFit, KernelHistogram, MOMENT_WEIGHT, PlaneTarget, fit_gmm};
 use super::lm::{
@@ -616,7 +617,10 @@ pub fn fit_meta(
     fit_meta_with(cells, k, deg, &[Labelling::Centre], what, None)
 }
 
-/// [`fit_meta`], counting the joint fit's evaluations on `progress`.
+/// [`fit_meta`], counting the joint fit's evaluations on `progress`: the
+/// ladder of degrees from the per-cell fits in each of `labellings`, the
+/// lowest χ² kept, then the stuck cells' unsticking ([`refit_meta`]) if
+/// any are left, kept where it lowers χ².
 pub fn fit_meta_with(
     cells: &[Cell],
     k: usize,
@@ -665,10 +669,20 @@ pub fn fit_meta_with(
             .fold(f64::INFINITY, f64::min);
         climbers.retain(|c| c.1.chi2 <= PRUNE_RATIO * floor);
     }
-    let (model, rep) = climbers
+    let (mut model, mut rep) = climbers
         .into_iter()
         .min_by(|a, b| a.1.chi2.total_cmp(&b.1.chi2))
         .expect("a climber");
+    // The top rung may leave cells stuck, as a refit's start may: unstick
+    // them as a refit does, and keep the result if its χ² is lower.
+    let stuck = stuck_cells(cells, &model, &fits);
+    if !stuck.is_empty() {
+        let (m, r, used) = unstick(cells, model.clone(), &stuck, what, progress)?;
+        spent = (spent.0 + used.0, spent.1 + used.1);
+        if r.chi2 < rep.chi2 {
+            (model, rep) = (m, r);
+        }
+    }
     Ok(JointFit {
         model,
         report: FitReport {
@@ -677,7 +691,7 @@ pub fn fit_meta_with(
             ..rep
         },
         fits,
-        stuck: Vec::new(),
+        stuck,
     })
 }
 
@@ -733,11 +747,31 @@ pub fn refit_meta(
     }
     let fits = per_cell_fits(cells, model.k);
     let stuck = stuck_cells(cells, model, &fits);
-    let mut start = model.clone();
+    let (model, report, _) = unstick(cells, model.clone(), &stuck, what, progress)?;
+    Ok(JointFit {
+        model,
+        report,
+        fits,
+        stuck,
+    })
+}
+
+/// A stage from `model` with the widths of the `stuck` cells floored
+/// (none if `stuck` is empty), then a plain stage from its result
+/// ([`refit_meta`]). Returns the model, the last stage's report with both
+/// stages' evaluations and time, and those totals.
+fn unstick(
+    cells: &[Cell],
+    model: MetaModel,
+    stuck: &[StuckCell],
+    what: &str,
+    progress: Option<&crate::progress::Task>,
+) -> Result<(MetaModel, FitReport, (usize, f64)), FitError> {
+    let mut start = model;
     let mut spent = (0, 0.0);
     if !stuck.is_empty() {
         let mut floors = vec![0.0; cells.len()];
-        for s in &stuck {
+        for s in stuck {
             floors[s.cell] = s.floor;
         }
         let (m, rep) = solve_stage(cells, start, Some(&floors), what, progress)?;
@@ -745,16 +779,13 @@ pub fn refit_meta(
         start = m;
     }
     let (model, rep) = solve_stage(cells, start, None, what, progress)?;
-    Ok(JointFit {
-        model,
-        report: FitReport {
-            evaluations: spent.0 + rep.evaluations,
-            wall_s: spent.1 + rep.wall_s,
-            ..rep
-        },
-        fits,
-        stuck,
-    })
+    let spent = (spent.0 + rep.evaluations, spent.1 + rep.wall_s);
+    let rep = FitReport {
+        evaluations: spent.0,
+        wall_s: spent.1,
+        ..rep
+    };
+    Ok((model, rep, spent))
 }
 
 /// A joint fit of one vertex class.
@@ -764,8 +795,9 @@ pub struct JointFit {
     pub report: FitReport,
     /// The per-cell fits, in cell order.
     pub fits: Vec<CellFit>,
-    /// The cells a refit found stuck and floored in a first stage
-    /// ([`refit_meta`]).
+    /// The cells found stuck, at the start of a refit ([`refit_meta`]) or
+    /// at the top of the ladder ([`fit_meta_with`]), and unstuck with a
+    /// width floor.
     pub stuck: Vec<StuckCell>,
 }
 
@@ -961,7 +993,8 @@ pub struct MetaModelFit {
     pub per_cell: Vec<(String, Vec<std::result::Result<FitReport, String>>)>,
     /// The aggregation error of every cell ([`crate::fit::aggregation`]).
     pub aggregation: Vec<AggregationRow>,
-    /// The cells a refit found stuck, per class ([`refit_meta`]).
+    /// The cells found stuck and unstuck with a width floor, per class
+    /// ([`JointFit::stuck`]).
     pub stuck: Vec<(String, Vec<StuckCell>)>,
 }
 
@@ -1387,8 +1420,10 @@ mod tests {
             model: m,
             report: rep,
             fits,
-            ..
+            stuck,
         } = fit_meta(&cells, 3, (1, 1), "synthetic").unwrap();
+        // The ladder ends at the known model: no cell is stuck there.
+        assert!(stuck.is_empty(), "{stuck:?}");
         assert!(fits.iter().all(|f| f.is_ok()));
         assert!(rep.chi2_per_dof < 0.05, "{rep:?}");
         for c in &cells {

@@ -34,8 +34,8 @@ pub struct KernelReport {
     #[serde(default)]
     pub moment_errors: bool,
     pub joint: Vec<FitReport>,
-    /// The cells a refit found stuck and floored in a first stage, per
-    /// class ([`crate::fit::meta::refit_meta`]).
+    /// The cells found stuck and refitted with a width floor first, per
+    /// class ([`crate::fit::meta::JointFit::stuck`]).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub stuck: Vec<(String, Vec<StuckCell>)>,
     /// Per-cell fit reports (or the error) per class.
