@@ -796,8 +796,9 @@ pub struct JointFit {
     /// The per-cell fits, in cell order.
     pub fits: Vec<CellFit>,
     /// The cells found stuck, at the start of a refit ([`refit_meta`]) or
-    /// at the top of the ladder ([`fit_meta_with`]), and unstuck with a
-    /// width floor.
+    /// at the top of the ladder ([`fit_meta_with`]), and refitted with a
+    /// width floor first (the ladder keeps that refit only where it lowers
+    /// χ²).
     pub stuck: Vec<StuckCell>,
 }
 
