@@ -85,16 +85,20 @@ def main():
             dist = rho * distance_to_other(amap, rows, cols, doc["albedo_texel"])
         total = 100 * (m[inside] - ref[inside]).sum() / ref[inside].sum()
         print(f"{p['tag'] or 'main'}: {a.method} against the reference within r < {radius:g}: bias {total:+.2f} %")
-        groups = values if len(values) <= 8 else np.quantile(under[inside], [0.2, 0.4, 0.6, 0.8])
-        for i, v in enumerate(values if len(values) <= 8 else range(5)):
-            if len(values) <= 8:
-                sel = inside & (under == v)
-                label = f"albedo {v:.3g}"
-            else:
-                lo = -np.inf if i == 0 else groups[i - 1]
-                hi = np.inf if i == 4 else groups[i]
-                sel = inside & (under >= lo) & (under < hi)
-                label = f"albedo quintile {i + 1} (mean {under[sel].mean():.3g})"
+        if len(values) <= 8:
+            groups = [(f"albedo {v:.3g}", inside & (under == v)) for v in values]
+        else:
+            # Quintiles by rank, so that ties cannot empty a group.
+            idx = np.flatnonzero(inside)
+            idx = idx[np.argsort(under.flat[idx], kind="stable")]
+            groups = []
+            for i, part in enumerate(np.array_split(idx, 5)):
+                sel = np.zeros(under.shape, bool)
+                sel.flat[part] = True
+                groups.append((f"albedo quintile {i + 1} (mean {under[sel].mean():.3g})", sel))
+        for label, sel in groups:
+            if not sel.any():
+                continue
             line = f"  {label}: {sel.sum()} px, bias {100 * (m[sel] - ref[sel]).sum() / ref[sel].sum():+.2f} %"
             if dist is not None:
                 cells = []
