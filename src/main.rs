@@ -749,9 +749,9 @@ enum Fit {
         #[arg(long)]
         vertex_refine: Option<usize>,
         /// Start the joint fits from this fitted meta-model's coefficients,
-        /// at its K and degrees, instead of climbing from per-cell fits: a
-        /// refit of a new tally over the model's box (its box, g and η
-        /// must be the tally's).
+        /// at its K and its degrees (or --degree), instead of climbing from
+        /// per-cell fits: a refit of a new tally over the model's box (its
+        /// box, g and η must be the tally's).
         #[arg(long, conflicts_with = "components")]
         from: Option<PathBuf>,
         /// Let the whole-plane moment residuals allow for the data's own

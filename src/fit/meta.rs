@@ -677,8 +677,8 @@ pub fn fit_meta_with(
     // them as a refit does, and keep the result if its χ² is lower.
     let stuck = stuck_cells(cells, &model, &fits);
     if !stuck.is_empty() {
-        let (m, r, used) = unstick(cells, model.clone(), &stuck, what, progress)?;
-        spent = (spent.0 + used.0, spent.1 + used.1);
+        let (m, r) = unstick(cells, model.clone(), &stuck, what, progress)?;
+        spent = (spent.0 + r.evaluations, spent.1 + r.wall_s);
         if r.chi2 < rep.chi2 {
             (model, rep) = (m, r);
         }
@@ -747,7 +747,7 @@ pub fn refit_meta(
     }
     let fits = per_cell_fits(cells, model.k);
     let stuck = stuck_cells(cells, model, &fits);
-    let (model, report, _) = unstick(cells, model.clone(), &stuck, what, progress)?;
+    let (model, report) = unstick(cells, model.clone(), &stuck, what, progress)?;
     Ok(JointFit {
         model,
         report,
@@ -758,15 +758,15 @@ pub fn refit_meta(
 
 /// A stage from `model` with the widths of the `stuck` cells floored
 /// (none if `stuck` is empty), then a plain stage from its result
-/// ([`refit_meta`]). Returns the model, the last stage's report with both
-/// stages' evaluations and time, and those totals.
+/// ([`refit_meta`]). Returns the model and the last stage's report with
+/// both stages' evaluations and time.
 fn unstick(
     cells: &[Cell],
     model: MetaModel,
     stuck: &[StuckCell],
     what: &str,
     progress: Option<&crate::progress::Task>,
-) -> Result<(MetaModel, FitReport, (usize, f64)), FitError> {
+) -> Result<(MetaModel, FitReport), FitError> {
     let mut start = model;
     let mut spent = (0, 0.0);
     if !stuck.is_empty() {
@@ -779,13 +779,12 @@ fn unstick(
         start = m;
     }
     let (model, rep) = solve_stage(cells, start, None, what, progress)?;
-    let spent = (spent.0 + rep.evaluations, spent.1 + rep.wall_s);
     let rep = FitReport {
-        evaluations: spent.0,
-        wall_s: spent.1,
+        evaluations: spent.0 + rep.evaluations,
+        wall_s: spent.1 + rep.wall_s,
         ..rep
     };
-    Ok((model, rep, spent))
+    Ok((model, rep))
 }
 
 /// A joint fit of one vertex class.
@@ -1132,10 +1131,8 @@ pub fn fit_metamodel_with(
                     VertexClass::Last => &f.last,
                     _ => &f.all,
                 };
-                match degree {
-                    Some(deg) => refit_meta(&cs, &raise_degree(m, *deg), &what, Some(&task)),
-                    None => refit_meta(&cs, m, &what, Some(&task)),
-                }
+                let m = degree.map_or_else(|| m.clone(), |deg| raise_degree(m, deg));
+                refit_meta(&cs, &m, &what, Some(&task))
             }
         }
         .map(|r| (class, cs, r))
