@@ -759,6 +759,11 @@ enum Fit {
         /// tallies whose moments are noisier than the tolerances.
         #[arg(long)]
         moment_errors: bool,
+        /// The weight W of the whole-plane moment residuals against the
+        /// bins: a miss by the tolerance (5 % of d in mean t, 10 % in rms s)
+        /// costs W² in χ².
+        #[arg(long, default_value_t = svkernel::fit::gmm::MOMENT_WEIGHT)]
+        moment_weight: f64,
     },
     /// Make a fitted meta-model carry a fit over a wider box (d, α), which
     /// answers the kernel queries outside its own box (the shipped model
@@ -1540,6 +1545,7 @@ fn fit(f: Fit) -> Result<()> {
             vertex_refine,
             from,
             moment_errors,
+            moment_weight,
         } => {
             use svkernel::jobs::fit_kernels;
             let components = match components[..] {
@@ -1553,6 +1559,9 @@ fn fit(f: Fit) -> Result<()> {
                 Some(&[dx, dy]) => bail!("invalid --degree {dx},{dy}: each must be <= 7"),
                 Some(_) => bail!("invalid --degree: give two degrees, e.g. 3,3"),
             };
+            if !(moment_weight.is_finite() && moment_weight >= 0.0) {
+                bail!("invalid --moment-weight {moment_weight}: give a finite weight >= 0");
+            }
             let dir = dir.unwrap_or_else(|| {
                 out.parent()
                     .unwrap_or(std::path::Path::new("."))
@@ -1567,7 +1576,10 @@ fn fit(f: Fit) -> Result<()> {
                     degree,
                     vertex_refine,
                     start: from.clone(),
-                    moment_errors,
+                    moments: svkernel::fit::meta::MomentFit {
+                        weight: moment_weight,
+                        errors: moment_errors,
+                    },
                 },
                 true,
             );

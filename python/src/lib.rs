@@ -597,7 +597,7 @@ fn fit_kernels(
     progress: bool,
     start: Option<PyRef<'_, MetaModel>>,
 ) -> PyResult<(MetaModel, String)> {
-    use svkernel::fit::meta::{FitStart, fit_metamodel_with};
+    use svkernel::fit::meta::{FitStart, MomentFit, fit_metamodel_with};
     let doc: KernelDoc = lib(svkernel::doc::from_json(tally, Path::new("<tally>")))?;
     let start_file = start.map(|m| Arc::clone(&m.inner));
     let from = match &start_file {
@@ -610,7 +610,8 @@ fn fit_kernels(
             degree: degrees,
         },
     };
-    let (model, fit) = lib(py.detach(|| fit_metamodel_with(&doc, &from, false, progress)))?;
+    let (model, fit) =
+        lib(py.detach(|| fit_metamodel_with(&doc, &from, MomentFit::default(), progress)))?;
     let report = serde_json::json!({
         "joint": fit.joint.iter().map(|j| serde_json::json!({
             "what": j.what,

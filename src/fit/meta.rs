@@ -234,6 +234,43 @@ pub fn with_moment_errors(mut cells: Vec<Cell>) -> Vec<Cell> {
     cells
 }
 
+/// How a fit weighs the whole-plane moments of the data against its bins
+/// ([`crate::fit::gmm`], "Moments").
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MomentFit {
+    /// W: a miss by the tolerance costs W² in χ² ([`MOMENT_WEIGHT`] by
+    /// default).
+    pub weight: f64,
+    /// The moment residuals allow for the data's own standard errors
+    /// ([`with_moment_errors`]).
+    pub errors: bool,
+}
+
+impl Default for MomentFit {
+    fn default() -> Self {
+        MomentFit {
+            weight: MOMENT_WEIGHT,
+            errors: false,
+        }
+    }
+}
+
+impl MomentFit {
+    /// `cells` with their moment residuals weighed as `self` says.
+    pub fn apply(&self, mut cells: Vec<Cell>) -> Vec<Cell> {
+        for c in &mut cells {
+            if let Some(t) = &mut c.hist.plane {
+                t.weight = self.weight;
+            }
+        }
+        if self.errors {
+            with_moment_errors(cells)
+        } else {
+            cells
+        }
+    }
+}
+
 /// The cells of `doc` (one vertex class) with at least [`MIN_PATHS`]
 /// effective paths.
 /// The document must be at unit density (the meta-model is trained there).
@@ -1040,7 +1077,7 @@ pub fn fit_metamodel(
         components: k.into(),
         degree,
     };
-    fit_metamodel_with(doc, &start, false, progress)
+    fit_metamodel_with(doc, &start, MomentFit::default(), progress)
 }
 
 /// Where the joint fits of [`fit_metamodel_with`] start.
@@ -1062,12 +1099,12 @@ pub enum FitStart<'a> {
     },
 }
 
-/// [`fit_metamodel`] from `start`, with the moment residuals allowing for
-/// the data's standard errors if `moment_errors` ([`with_moment_errors`]).
+/// [`fit_metamodel`] from `start`, with the moment residuals weighed as
+/// `moments` says.
 pub fn fit_metamodel_with(
     doc: &KernelDoc,
     start: &FitStart,
-    moment_errors: bool,
+    moments: MomentFit,
     progress: bool,
 ) -> crate::Result<(MetaModelFile, MetaModelFit)> {
     if let FitStart::From {
@@ -1105,11 +1142,7 @@ pub fn fit_metamodel_with(
     // The two classes are independent fits: run them side by side (the QR
     // inside LM is single-threaded).
     let fit_class = |class: VertexClass| {
-        let cs = if moment_errors {
-            with_moment_errors(cells(doc, class))
-        } else {
-            cells(doc, class)
-        };
+        let cs = moments.apply(cells(doc, class));
         let what = format!("meta-model ({} vertices)", class.name());
         // The last-vertex kernels' components may share a centre: they
         // are fitted from both labellings.

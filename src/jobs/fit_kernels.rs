@@ -7,7 +7,9 @@ use crate::error::{Error, Result};
 use crate::fit::aggregation::{AggregationRow, aggregation_row};
 use crate::fit::gmm::histogram_of;
 use crate::fit::lm::FitReport;
-use crate::fit::meta::{Cell, Components, FitStart, PlaneMoments, StuckCell, fit_metamodel_with};
+use crate::fit::meta::{
+    Cell, Components, FitStart, MomentFit, PlaneMoments, StuckCell, fit_metamodel_with,
+};
 use crate::forward::kernel::{KernelDoc, VertexClass};
 use crate::metamodel::kernel::{Gmm, manual_kernel};
 use crate::metamodel::meta::MetaModelFile;
@@ -29,10 +31,8 @@ pub struct KernelReport {
     /// ([`KernelFitOptions::start`]), if not the ladder.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub start: Option<String>,
-    /// Whether the moment residuals allowed for the data's standard errors
-    /// ([`KernelFitOptions::moment_errors`]).
-    #[serde(default)]
-    pub moment_errors: bool,
+    /// How the moment residuals were weighed ([`KernelFitOptions::moments`]).
+    pub moments: MomentFit,
     pub joint: Vec<FitReport>,
     /// The cells found stuck and refitted with a width floor first, per
     /// class ([`crate::fit::meta::JointFit::stuck`]).
@@ -65,9 +65,8 @@ pub struct KernelFitOptions {
     /// refit of new data over the model's box
     /// ([`crate::fit::meta::FitStart::From`]). `None`: from the data alone.
     pub start: Option<std::path::PathBuf>,
-    /// The whole-plane moment residuals allow for the data's standard
-    /// errors ([`crate::fit::meta::with_moment_errors`]).
-    pub moment_errors: bool,
+    /// How the whole-plane moment residuals are weighed against the bins.
+    pub moments: MomentFit,
 }
 
 /// Fits the meta-model (all and last vertices) to `data`, writes `out` and
@@ -99,7 +98,7 @@ pub fn fit_kernels(
             degree: opts.degree.unwrap_or(DEFAULT_DEGREE),
         },
     };
-    let (file, fit) = fit_metamodel_with(&doc, &from, opts.moment_errors, progress)?;
+    let (file, fit) = fit_metamodel_with(&doc, &from, opts.moments, progress)?;
     let (k, degree) = (
         Components {
             all: file.all.k,
@@ -115,7 +114,7 @@ pub fn fit_kernels(
         degree,
         vertex_refine: doc.config.grid.vertex_refine,
         start: opts.start.as_ref().map(|p| p.display().to_string()),
-        moment_errors: opts.moment_errors,
+        moments: opts.moments,
         joint: fit.joint,
         stuck: fit.stuck,
         per_cell: fit.per_cell,
