@@ -246,6 +246,15 @@ pub struct MomentFit {
     pub errors: bool,
 }
 
+/// The heaviest moment weight at which [`fit_metamodel_with`]'s ladder
+/// climbs from the per-cell fits; a heavier [`MomentFit::weight`] is
+/// reached by a refit from the ladder's top ([`refit_meta`]). On the
+/// shipped tally a climb at W = 60 settles in a poorer valley (all
+/// vertices: χ²/dof 21.3, aggregation error 0.0045 / 0.0095, rms s within
+/// 10 % in 75 of 80 cells) than the climb at W = 30 refitted at W = 60
+/// (χ²/dof 9.2, 0.0027 / 0.0045, 79 of 80).
+pub const LADDER_MOMENT_WEIGHT: f64 = 30.0;
+
 impl Default for MomentFit {
     fn default() -> Self {
         MomentFit {
@@ -1151,14 +1160,28 @@ pub fn fit_metamodel_with(
             _ => &[Labelling::Centre],
         };
         match start {
-            FitStart::Ladder { components, degree } => fit_meta_with(
-                &cs,
-                components.of(class),
-                *degree,
-                labellings,
-                &what,
-                Some(&task),
-            ),
+            FitStart::Ladder { components, degree } => {
+                // The climb weighs the moments at most at LADDER_MOMENT_WEIGHT;
+                // a heavier weight is reached from its top (a continuation).
+                let climb = MomentFit {
+                    weight: moments.weight.min(LADDER_MOMENT_WEIGHT),
+                    ..moments
+                };
+                let top = fit_meta_with(
+                    &climb.apply(cells(doc, class)),
+                    components.of(class),
+                    *degree,
+                    labellings,
+                    &what,
+                    Some(&task),
+                );
+                match top {
+                    Ok(top) if climb.weight < moments.weight => {
+                        refit_meta(&cs, &top.model, &what, Some(&task))
+                    }
+                    top => top,
+                }
+            }
             FitStart::From { model: f, degree } => {
                 let m = match class {
                     VertexClass::Last => &f.last,
