@@ -905,6 +905,23 @@ fn fit_kernels_writes_under_out_by_default() {
             assert!(a <= b, "{out}: {a} > {b}");
         }
     }
+    // The report records how the moments were weighed; a weight that is
+    // not a finite number >= 0 is refused.
+    assert_eq!(fit["moments"]["weight"], 70.0);
+    assert_eq!(fit["moments"]["errors"], false);
+    for w in ["-1", "nan", "inf"] {
+        let o = refit(
+            "out/fit/metamodel.json",
+            &["--moment-weight", w],
+            "weight/metamodel.json",
+        );
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            !o.status.success() && err.contains("--moment-weight"),
+            "{w}: {err}"
+        );
+        assert!(!d.join("weight/metamodel.json").exists());
+    }
     // Degrees below the model's are refused.
     let o = refit(
         "raised/metamodel.json",

@@ -252,7 +252,7 @@ pub struct MomentFit {
 /// shipped tally a climb at W = 60 settles in a poorer valley (all
 /// vertices: χ²/dof 21.3, aggregation error 0.0045 / 0.0095, rms s within
 /// 10 % in 75 of 80 cells) than the climb at W = 30 refitted at W = 60
-/// (χ²/dof 9.2, 0.0027 / 0.0045, 79 of 80).
+/// (χ²/dof 9.2, 0.0027 / 0.0045, 78 of 80).
 pub const LADDER_MOMENT_WEIGHT: f64 = 30.0;
 
 impl Default for MomentFit {
@@ -1076,6 +1076,11 @@ impl From<usize> for Components {
 /// degrees `degree` (in ln d, in √(1 − α)) to a kernel tally at unit
 /// density, and measures every cell's aggregation error. Pure: the caller
 /// writes the model and the report.
+///
+/// The quick fit of a medium built on demand: the ladder alone, with the
+/// moments at [`LADDER_MOMENT_WEIGHT`] (no refit at a heavier weight,
+/// which costs a second pass of per-cell and joint fits);
+/// [`fit_metamodel_with`] fits as `svkernel fit kernels` does.
 pub fn fit_metamodel(
     doc: &KernelDoc,
     k: impl Into<Components>,
@@ -1086,7 +1091,11 @@ pub fn fit_metamodel(
         components: k.into(),
         degree,
     };
-    fit_metamodel_with(doc, &start, MomentFit::default(), progress)
+    let moments = MomentFit {
+        weight: LADDER_MOMENT_WEIGHT,
+        errors: false,
+    };
+    fit_metamodel_with(doc, &start, moments, progress)
 }
 
 /// Where the joint fits of [`fit_metamodel_with`] start.
