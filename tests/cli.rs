@@ -912,7 +912,7 @@ fn fit_kernels_writes_under_out_by_default() {
     for w in ["-1", "nan", "inf"] {
         let o = refit(
             "out/fit/metamodel.json",
-            &["--moment-weight", w],
+            &[&format!("--moment-weight={w}")],
             "weight/metamodel.json",
         );
         let err = String::from_utf8_lossy(&o.stderr);
