@@ -283,6 +283,43 @@ fn kernel_query_command() {
     }
 }
 
+/// The shipped model's whole-plane moments meet the targets (|Δ mean t|
+/// within 0.05·d + 0.01λ, rms s within 10 %) in every cell of the shipped
+/// box with twice the data's standard error allowed, and without it in all
+/// cells but one: α = 0.92, d = 0.6 MFP, whose tallied rms s (0.839 ±
+/// 0.151 MFP) rests on a few far vertices of heavy weight. A model fitted
+/// with the moments at W = 30 misses rms s in three more cells (α = 0.99,
+/// 11–14 % narrow).
+#[test]
+fn the_shipped_model_meets_the_moment_targets() {
+    use svkernel::jobs::fit_kernels::moment_within;
+    let doc = KernelDoc::load(Path::new(KERNELS)).unwrap();
+    let f = MetaModelFile::load(Path::new(META)).unwrap();
+    for class in [VertexClass::All, VertexClass::Last] {
+        let mut misses = Vec::new();
+        for c in cells(&doc, class) {
+            let data = c.plane.expect("measured cells carry their moments");
+            let meta = svkernel::fit::meta::PlaneMoments::of(&f.eval(class, c.d, c.alpha, 1.0).gmm);
+            let se = data.se.expect("the shipped tally has the moments' errors");
+            let [t, s] = moment_within(c.d, &data, &meta, se);
+            assert!(
+                t && s,
+                "{class:?} α {} d {}: {meta:?} against {data:?}",
+                c.alpha,
+                c.d
+            );
+            let [t, s] = moment_within(c.d, &data, &meta, [0.0; 2]);
+            if !(t && s) {
+                misses.push((c.alpha, c.d));
+            }
+        }
+        assert!(
+            misses.is_empty() || (class == VertexClass::All && misses == [(0.92, 0.6)]),
+            "{class:?}: outside the targets at {misses:?}"
+        );
+    }
+}
+
 /// The whole-plane moments the tally keeps agree with the histogram where
 /// the window holds nearly every vertex (binned means to within a bin), and
 /// every report row carries the window's share and both moments.
