@@ -265,7 +265,8 @@ impl Default for MomentFit {
 }
 
 impl MomentFit {
-    /// `cells` with their moment residuals weighed as `self` says.
+    /// `cells` with their moment residuals weighed as `self` says (again
+    /// on cells it has weighed: it sets, it does not scale).
     pub fn apply(&self, mut cells: Vec<Cell>) -> Vec<Cell> {
         for c in &mut cells {
             if let Some(t) = &mut c.hist.plane {
@@ -1177,7 +1178,7 @@ pub fn fit_metamodel_with(
                     ..moments
                 };
                 let top = fit_meta_with(
-                    &climb.apply(cells(doc, class)),
+                    &climb.apply(cs.clone()),
                     components.of(class),
                     *degree,
                     labellings,
