@@ -288,8 +288,9 @@ fn kernel_query_command() {
 /// box with twice the data's standard error allowed, and without it in all
 /// cells but one: α = 0.92, d = 0.6 MFP, whose tallied rms s (0.839 ±
 /// 0.151 MFP) rests on a few far vertices of heavy weight. A model fitted
-/// with the moments at W = 30 misses rms s in three more cells (α = 0.99,
-/// 11–14 % narrow).
+/// with the moments at W = 30 misses rms s in four more cells (α = 0.99,
+/// d = 0.6–2.5 MFP, 10–14 % narrow), at d = 1.6 beyond twice the data's
+/// error.
 #[test]
 fn the_shipped_model_meets_the_moment_targets() {
     use svkernel::jobs::fit_kernels::moment_within;
