@@ -725,8 +725,11 @@ enum Fit {
     },
     /// Fit the kernel meta-model (all and last vertices) to a kernel document.
     Kernels {
-        #[arg(long = "in", default_value = DEFAULT_KERNELS)]
-        input: PathBuf,
+        /// The kernel tally. Given again, each later tally is overlaid on
+        /// the first: its cells replace those at its albedos (same medium,
+        /// distances, window and grid).
+        #[arg(long = "in", default_value = DEFAULT_KERNELS, action = clap::ArgAction::Append)]
+        input: Vec<PathBuf>,
         /// The fitted meta-model (the shipped one is never replaced unless named here).
         #[arg(long, default_value = "out/fit/metamodel.json")]
         out: PathBuf,
@@ -782,8 +785,9 @@ enum Fit {
     /// against a kernel tally, cell by cell, without fitting (queries
     /// outside the model's box go to its outer model, as in `render`).
     CheckKernels {
-        #[arg(long = "in", default_value = DEFAULT_KERNELS)]
-        input: PathBuf,
+        /// The kernel tally; given again, overlaid as in `fit kernels`.
+        #[arg(long = "in", default_value = DEFAULT_KERNELS, action = clap::ArgAction::Append)]
+        input: Vec<PathBuf>,
         /// Meta-model [default: $SVKERNEL_MODEL, else built in].
         #[arg(long)]
         model: Option<PathBuf>,
@@ -1585,9 +1589,9 @@ fn fit(f: Fit) -> Result<()> {
             );
             // The starting model is the one input a library error does not name.
             let r = match &from {
-                Some(m) => r.with_context(|| {
-                    format!("refitting {} from {}", input.display(), m.display())
-                })?,
+                Some(m) => {
+                    r.with_context(|| format!("refitting {} from {}", shown(&input), m.display()))?
+                }
                 None => r?,
             };
             print!("{}", fit_kernels::aggregation_summary(&r.aggregation));
@@ -1630,7 +1634,7 @@ fn fit(f: Fit) -> Result<()> {
             use svkernel::jobs::fit_kernels;
             let (f, origin): (MetaModelFile, _) = Shipped::Meta.load(model.as_deref())?;
             let rows = fit_kernels::check_kernels(&input, &f, vertex_refine)?;
-            println!("{} against {}:", origin.display(), input.display());
+            println!("{} against {}:", origin.display(), shown(&input));
             print!("{}", fit_kernels::aggregation_summary(&rows));
             if let Some(out) = out {
                 svkernel::jobs::store::write_atomic(
@@ -2131,4 +2135,14 @@ fn main() -> std::process::ExitCode {
             std::process::ExitCode::FAILURE
         }
     }
+}
+
+/// Kernel tallies as `fit kernels --in` lists them: the first, then each
+/// one overlaid on it (`a + b`).
+fn shown(paths: &[PathBuf]) -> String {
+    paths
+        .iter()
+        .map(|p| p.display().to_string())
+        .collect::<Vec<_>>()
+        .join(" + ")
 }

@@ -922,6 +922,40 @@ fn fit_kernels_writes_under_out_by_default() {
         );
         assert!(!d.join("weight/metamodel.json").exists());
     }
+    // A tally of one albedo overlaid on the first (`--in A --in B`): the
+    // report lists it. One of other distances is refused with an error that
+    // names its file and the key, and no model is written.
+    let simulate = |distances: &str, out: &str| {
+        let o = bin()
+            .current_dir(&d)
+            .args(["simulate", "kernels", "--albedos", "0.95", "--distances"])
+            .args([distances, "--paths", "2e5", "--seed", "5", "--out", out])
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    };
+    simulate("0.5,1,2", "over.json");
+    simulate("0.5,1,3", "other.json");
+    let overlaid = |over: &str, out: &str| {
+        bin()
+            .current_dir(&d)
+            .args(["fit", "kernels", "--from", "out/fit/metamodel.json", "--in"])
+            .arg(&tally)
+            .args(["--in", over, "--out", out])
+            .output()
+            .unwrap()
+    };
+    let o = overlaid("over.json", "overlaid/metamodel.json");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r = report("overlaid/metamodel_report/report.json");
+    assert_eq!(r["overlays"], serde_json::json!(["over.json"]));
+    let o = overlaid("other.json", "mismatch/metamodel.json");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("other.json") && err.contains("config.distances"),
+        "{err}"
+    );
+    assert!(!d.join("mismatch/metamodel.json").exists());
     // Degrees below the model's are refused.
     let o = refit(
         "raised/metamodel.json",

@@ -667,6 +667,42 @@ fn corrupted_kernel_documents_are_named() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// A tally of one albedo overlaid on a tally of two replaces exactly that
+/// albedo's cells; one of other distances or of an albedo the first lacks
+/// is refused with an error naming its file and the key.
+#[test]
+fn an_overlay_replaces_the_cells_at_its_albedos() {
+    let base = doc(&config(&[0.7, 0.95], &[0.5, 2.0], 1.0, 16384, 9), None);
+    let over = doc(&config(&[0.95], &[0.5, 2.0], 1.0, 32768, 10), None);
+    assert_ne!(base.tally.cells[1], over.tally.cells[0]);
+    let mut d = base.clone();
+    let path = std::path::Path::new("over.json");
+    assert_eq!(d.overlay(&over, path).unwrap(), vec![0.95]);
+    assert_eq!(d.tally.cells[0], base.tally.cells[0]);
+    assert_eq!(d.tally.cells[1], over.tally.cells[0]);
+    assert_eq!(
+        d.histogram(1, 1, VertexClass::All),
+        over.histogram(0, 1, VertexClass::All)
+    );
+    let s = d.summary.iter().find(|s| s.albedo == 0.95 && s.d == 2.0);
+    assert_eq!(s.unwrap().paths, over.tally.cells[0][1].paths);
+    for (c, key) in [
+        (
+            config(&[0.95], &[0.5, 1.0], 1.0, 16384, 10),
+            "config.distances",
+        ),
+        (
+            config(&[0.8], &[0.5, 2.0], 1.0, 16384, 10),
+            "config.albedos",
+        ),
+    ] {
+        let mut d = base.clone();
+        let e = d.overlay(&doc(&c, None), path).unwrap_err().to_string();
+        assert!(e.contains("over.json") && e.contains(key), "{e}");
+        assert_eq!(d, base);
+    }
+}
+
 /// A constant density map walked with delta tracking is bitwise the plain
 /// walk at that density (no null collisions: p = 1).
 /// Walks paths 0..20 000 of seed 4 (pencil beam) with `a` and with `b` and

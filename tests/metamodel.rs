@@ -97,7 +97,7 @@ fn the_outer_model_holds_the_wide_box() {
     let mut clamped = f.clone();
     clamped.outer = None;
     let rows = |m: &MetaModelFile| {
-        svkernel::jobs::fit_kernels::check_kernels(Path::new(WIDE), m, Some(2)).unwrap()
+        svkernel::jobs::fit_kernels::check_kernels(&[WIDE.into()], m, Some(2)).unwrap()
     };
     let (with, without) = (rows(&f), rows(&clamped));
     let outside = |r: &&AggregationRow| !f.all.holds(r.d, r.alpha);

@@ -1619,6 +1619,70 @@ impl KernelDoc {
         Ok(())
     }
 
+    /// Replaces this tally's cells at the albedos of `other` by `other`'s
+    /// cells: a tally simulated for a few albedos overlaid on a wider one,
+    /// for a fit or a check (say an analog tally where a plan's transformed
+    /// samplings leave the whole-plane moments unsettled). The medium, the
+    /// distances, the window and the grid must be the same, and every
+    /// albedo of `other` must be one of this tally's; an error names `path`
+    /// (`other`'s file) and the key that differs. Returns the albedos
+    /// replaced.
+    ///
+    /// The result is a set of cells, not one simulation: its configuration,
+    /// runs and provenance stay this tally's, so it is not written back.
+    pub fn overlay(&mut self, other: &KernelDoc, path: &std::path::Path) -> Result<Vec<f64>> {
+        let (a, b) = (&self.config, &other.config);
+        let same: [(&str, bool); 7] = [
+            ("config.g", a.g == b.g),
+            ("config.eta", a.eta == b.eta),
+            ("config.density", a.density == b.density),
+            ("config.rel_width", a.rel_width == b.rel_width),
+            ("config.min_order", a.min_order == b.min_order),
+            ("config.grid", a.grid == b.grid),
+            ("config.distances", a.distances == b.distances),
+        ];
+        if let Some((key, _)) = same.iter().find(|(_, ok)| !ok) {
+            return Err(Error::format(
+                path,
+                *key,
+                "differs from the tally it overlays (the medium, distances, window and grid must match)",
+            ));
+        }
+        let rows: Vec<usize> = b
+            .albedos
+            .iter()
+            .map(|x| {
+                a.albedos.iter().position(|y| y == x).ok_or_else(|| {
+                    Error::format(
+                        path,
+                        "config.albedos",
+                        format!(
+                            "{x} is not one of the overlaid tally's albedos ({})",
+                            list(&a.albedos)
+                        ),
+                    )
+                })
+            })
+            .collect::<Result<_>>()?;
+        for (ib, &ia) in rows.iter().enumerate() {
+            self.tally.cells[ia] = other.tally.cells[ib].clone();
+            for s in self
+                .summary
+                .iter_mut()
+                .filter(|s| s.albedo == a.albedos[ia])
+            {
+                if let Some(o) = other
+                    .summary
+                    .iter()
+                    .find(|o| o.albedo == s.albedo && o.d == s.d)
+                {
+                    *s = o.clone();
+                }
+            }
+        }
+        Ok(b.albedos.clone())
+    }
+
     /// The normalised histogram of cell (albedo `ia`, distance `id`).
     ///
     /// mass_b = Σ n_b / Σ n_c (fraction of the class's vertices; n_b the

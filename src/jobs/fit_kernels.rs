@@ -14,7 +14,7 @@ use crate::forward::kernel::{KernelDoc, VertexClass};
 use crate::metamodel::kernel::{Gmm, manual_kernel};
 use crate::metamodel::meta::MetaModelFile;
 use serde::{Deserialize, Serialize};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// What `svkernel fit kernels` writes as report.json.
@@ -22,6 +22,10 @@ use std::time::Instant;
 pub struct KernelReport {
     pub model_file: String,
     pub data_file: String,
+    /// Tallies overlaid on `data_file`, in order: each replaces the cells
+    /// at its albedos ([`KernelDoc::overlay`]).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub overlays: Vec<String>,
     pub components: Components,
     pub degree: (usize, usize),
     /// The first- and last-vertex grids' refinement the fit saw.
@@ -69,10 +73,12 @@ pub struct KernelFitOptions {
     pub moments: MomentFit,
 }
 
-/// Fits the meta-model (all and last vertices) to `data`, writes `out` and
-/// `dir/report.json` and the plots; `progress` reports the fit's steps.
+/// Fits the meta-model (all and last vertices) to the tally `data[0]`,
+/// with each later tally of `data` overlaid on it ([`load_tally`]), writes
+/// `out` and `dir/report.json` and the plots; `progress` reports the fit's
+/// steps.
 pub fn fit_kernels(
-    data: &Path,
+    data: &[PathBuf],
     out: &Path,
     dir: &Path,
     opts: &KernelFitOptions,
@@ -82,7 +88,7 @@ pub fn fit_kernels(
     let doc = load_tally(data, opts.vertex_refine)?;
     if doc.config.density != 1.0 {
         return Err(Error::format(
-            data,
+            &data[0],
             "config.density",
             "the meta-model is trained at unit density (other densities follow by scaling)",
         ));
@@ -109,7 +115,8 @@ pub fn fit_kernels(
     crate::jobs::store::write_json_atomic(out, &file)?;
     let report = KernelReport {
         model_file: out.display().to_string(),
-        data_file: data.display().to_string(),
+        data_file: data[0].display().to_string(),
+        overlays: data[1..].iter().map(|p| p.display().to_string()).collect(),
         components: k,
         degree,
         vertex_refine: doc.config.grid.vertex_refine,
@@ -132,12 +139,24 @@ pub fn fit_kernels(
     Ok(report)
 }
 
-/// The kernel tally `data`, its first- and last-vertex histograms summed
-/// onto `vertex_refine` ([`KernelDoc::coarsen_vertices`]) if given.
-fn load_tally(data: &Path, vertex_refine: Option<usize>) -> Result<KernelDoc> {
-    let mut doc = KernelDoc::load(data)?;
-    if let Some(r) = vertex_refine {
-        doc.coarsen_vertices(r)?;
+/// The kernel tally `data[0]` with each later tally of `data` overlaid on
+/// it in turn ([`KernelDoc::overlay`]: its cells replace those at its
+/// albedos), every first- and last-vertex histogram summed onto
+/// `vertex_refine` ([`KernelDoc::coarsen_vertices`]) if given.
+pub fn load_tally(data: &[PathBuf], vertex_refine: Option<usize>) -> Result<KernelDoc> {
+    let load = |path: &Path| -> Result<KernelDoc> {
+        let mut doc = KernelDoc::load(path)?;
+        if let Some(r) = vertex_refine {
+            doc.coarsen_vertices(r)?;
+        }
+        Ok(doc)
+    };
+    let (first, rest) = data
+        .split_first()
+        .ok_or_else(|| Error::param("kernel tallies", "none", "at least one file"))?;
+    let mut doc = load(first)?;
+    for path in rest {
+        doc.overlay(&load(path)?, path)?;
     }
     Ok(doc)
 }
@@ -157,14 +176,15 @@ pub fn attach_outer(model: &Path, outer: &Path, out: &Path) -> Result<MetaModelF
 }
 
 /// `svkernel fit check-kernels`: the aggregation errors and whole-plane
-/// moments of the meta-model `model` against the kernel tally `data`, per
+/// moments of the meta-model `model` against the kernel tally `data[0]`
+/// (with each later tally of `data` overlaid, as in [`load_tally`]), per
 /// cell of at least [`crate::fit::meta::MIN_PATHS`] effective paths,
 /// without fitting. Each cell is answered as the renderer asks
 /// ([`MetaModelFile::eval`]): by the model's outer one outside its box.
 /// `vertex_refine` sums the tally's vertex histograms first, as in
 /// [`KernelFitOptions::vertex_refine`].
 pub fn check_kernels(
-    data: &Path,
+    data: &[PathBuf],
     model: &MetaModelFile,
     vertex_refine: Option<usize>,
 ) -> Result<Vec<AggregationRow>> {
