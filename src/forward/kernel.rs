@@ -1666,18 +1666,16 @@ impl KernelDoc {
             .collect::<Result<_>>()?;
         for (ib, &ia) in rows.iter().enumerate() {
             self.tally.cells[ia] = other.tally.cells[ib].clone();
-            for s in self
+        }
+        // Same albedos and distances, so every row of `other`'s summary
+        // has its place in this one.
+        for o in &other.summary {
+            if let Some(s) = self
                 .summary
                 .iter_mut()
-                .filter(|s| s.albedo == a.albedos[ia])
+                .find(|s| s.albedo == o.albedo && s.d == o.d)
             {
-                if let Some(o) = other
-                    .summary
-                    .iter()
-                    .find(|o| o.albedo == s.albedo && o.d == s.d)
-                {
-                    *s = o.clone();
-                }
+                *s = o.clone();
             }
         }
         Ok(b.albedos.clone())
