@@ -946,6 +946,14 @@ struct KernelArgs {
     /// the all-vertex grid).
     #[arg(long, default_value_t = PairGrid::default().vertex_refine)]
     vertex_refine: usize,
+    /// Log-spaced all-vertex bins beyond the core (each side along the
+    /// axis, and outward across it), out to `--tail-extent` (λ units): the
+    /// window that holds the far vertices of high albedos. Default: none.
+    #[arg(long, requires = "tail_extent")]
+    tail_bins: Option<usize>,
+    /// The tail's far edge in units of λ (beyond `--extent`).
+    #[arg(long, requires = "tail_bins")]
+    tail_extent: Option<f64>,
     /// Plan the simulation so that every cell gets at least this many
     /// effective contributing paths: pilot walks choose per cell a flight
     /// stretch and a path count (then `--paths` is the most paths of one run).
@@ -1065,6 +1073,10 @@ fn simulate_kernels(a: KernelArgs) -> Result<()> {
             nv: a.nv,
             extent: a.extent,
             vertex_refine: a.vertex_refine,
+            tail: a
+                .tail_bins
+                .zip(a.tail_extent)
+                .map(|(bins, extent)| kernel::Tail { bins, extent }),
         },
         runs: Vec::new(),
     };

@@ -2,7 +2,8 @@
 # Regenerates data/kernels/eta1.5_g0.3_pencil.json: path densities (first,
 # last and all scattering vertices, multiple scattering) of the default
 # medium (η = 1.5, g = 0.3, ρ = 1) under a pencil beam, at 8 albedos and 10
-# pair distances (bins d·(1 ± 0.1)). The simulation is planned per cell
+# pair distances (bins d·(1 ± 0.1)), the all-vertex window going on beyond
+# ±4λ in 8 log-spaced bins out to ±16λ. The simulation is planned per cell
 # (docs/method.md §3): each cell gets the flight sampling its pilot found
 # best and paths for 40000 effective contributing paths, one round
 # (1.38e9 paths). Then one top-up round gives every cell still below 2000
@@ -23,6 +24,7 @@ if [ -n "${SHARD:-}" ]; then shard_args=(--shard "$SHARD"); out="${out%.json}.sh
   --albedos 0.2,0.4,0.6,0.75,0.85,0.92,0.96,0.99 \
   --distances 0.1,0.2,0.35,0.6,1,1.6,2.5,4,6.5,10 \
   --rel-width 0.1 --min-order 2 --eta 1.5 --g 0.3 --density 1 \
+  --tail-bins 8 --tail-extent 16 \
   --min-paths 40000 --top-ups 0 --paths 4e9 --seed 3000 "${shard_args[@]}" --resume \
   --out "$out" | sed -n 1p
 if [ -z "${SHARD:-}" ]; then

@@ -6,8 +6,8 @@
 //! α_t(K) = Σ_b m_b(K)·Ā_b / Σ_b m_b(K) over the histogram's grid, with m_b
 //! the kernel's mass in bin b and Ā_b the texture averaged over bin b and
 //! its mirror image in s (the histogram is folded in |s|), by 4 × 4
-//! sub-samples per bin. The reference is the measured histogram; the error
-//! of a kernel is the RMS over textures of α_t(K) − α_t(histogram). Off-grid
+//! sub-samples per bin (more in the wider bins of a window's tail). The
+//! reference is the measured histogram; the error of a kernel is the RMS over textures of α_t(K) − α_t(histogram). Off-grid
 //! mass is left out of every method alike.
 
 use crate::fit::gmm::{KernelHistogram, histogram_of};
@@ -54,33 +54,54 @@ impl Texture {
         PathRng::new(self.seed, key).uniform()
     }
 
-    /// Mean over bin [t0, t1] × [s0, s1] and its mirror in s (4 × 4 samples).
-    fn bin_mean(&self, t0: f64, t1: f64, s0: f64, s1: f64) -> f64 {
+    /// Mean over bin [t0, t1] × [s0, s1] and its mirror in s, by `kt` × `ks`
+    /// samples at the centres of equal sub-cells.
+    fn bin_mean(&self, (t0, t1, kt): (f64, f64, usize), (s0, s1, ks): (f64, f64, usize)) -> f64 {
         let mut sum = 0.0;
-        for a in 0..4 {
-            let t = t0 + (t1 - t0) * (a as f64 + 0.5) / 4.0;
-            for b in 0..4 {
-                let s = s0 + (s1 - s0) * (b as f64 + 0.5) / 4.0;
+        for a in 0..kt {
+            let t = t0 + (t1 - t0) * (a as f64 + 0.5) / kt as f64;
+            for b in 0..ks {
+                let s = s0 + (s1 - s0) * (b as f64 + 0.5) / ks as f64;
                 sum += self.at(t, s) + self.at(t, -s);
             }
         }
-        sum / 32.0
+        sum / (2 * kt * ks) as f64
     }
 }
+
+/// Sub-samples along one axis for each bin of `edges`: 4 in the narrowest
+/// bin, and as many more as a wider bin (a tail bin, `PairGrid::tail`) is
+/// wider, at most [`MAX_SUBSAMPLES`]. A uniform grid gets 4 everywhere.
+fn subsamples(edges: &[f64]) -> Vec<(f64, f64, usize)> {
+    let narrowest = edges
+        .windows(2)
+        .map(|e| e[1] - e[0])
+        .fold(f64::INFINITY, f64::min);
+    edges
+        .windows(2)
+        .map(|e| {
+            let k = 4 * ((e[1] - e[0]) / narrowest).round().max(1.0) as usize;
+            (e[0], e[1], k.min(MAX_SUBSAMPLES))
+        })
+        .collect()
+}
+
+/// The most sub-samples along one axis of a bin.
+const MAX_SUBSAMPLES: usize = 16;
 
 /// Per texture: the texture's bin means over the grid of `hists[0]` (one
 /// evaluation shared by every kernel and by the noise estimate) and α_t of
 /// each kernel histogram.
 pub fn aggregated(hists: &[&KernelHistogram], seed: u64) -> Vec<(Vec<f64>, Vec<f64>)> {
     let grid = hists[0];
-    let (te, se) = (&grid.t_edges, &grid.s_edges);
+    let (ts, ss) = (subsamples(&grid.t_edges), subsamples(&grid.s_edges));
     (0..TEXTURES)
         .map(|k| {
             let tex = Texture::new(seed, k);
-            let means: Vec<f64> = te
-                .windows(2)
-                .flat_map(|t| se.windows(2).map(move |s| (t[0], t[1], s[0], s[1])))
-                .map(|(t0, t1, s0, s1)| tex.bin_mean(t0, t1, s0, s1))
+            let means: Vec<f64> = ts
+                .iter()
+                .flat_map(|&t| ss.iter().map(move |&s| (t, s)))
+                .map(|(t, s)| tex.bin_mean(t, s))
                 .collect();
             let at = hists
                 .iter()

@@ -27,7 +27,9 @@
 //!
 //! # Normalised coordinates
 //! Histograms are binned in u = (t − d_p/2)/λ ∈ [−E, E), v = |s|/λ ∈ [0, E)
-//! with λ = d_p/2 + ℓ, ℓ = 1/σ_t the mean free path of the simulated medium.
+//! with λ = d_p/2 + ℓ, ℓ = 1/σ_t the mean free path of the simulated medium
+//! (uniform bins; the all-vertex grid may go on beyond E in log-spaced bins,
+//! [`Tail`], out to a far edge).
 //! λ interpolates between the two length scales of the problem: the mean free
 //! path (the kernel of a short pair is a blob of a few ℓ around x_i ≈ x_e)
 //! and the pair distance (a long pair's vertices spread along the axis).
@@ -83,6 +85,32 @@ pub struct PairGrid {
     /// existed read and hash as they did.
     #[serde(default = "one", skip_serializing_if = "is_one")]
     pub vertex_refine: usize,
+    /// Log-spaced bins of the all-vertex histogram beyond the uniform core,
+    /// out to a far edge ([`Tail`]). None (not written): the window is the
+    /// core, and documents from before the tail existed read and hash as
+    /// they did.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tail: Option<Tail>,
+}
+
+/// The all-vertex window beyond the core: `bins` bins on each side of the
+/// core along u, and `bins` beyond it along v, whose edges run
+/// geometrically from the core's edge X = `PairGrid::extent` to the far
+/// edge Y = `extent`, r_k = X·(Y/X)^{k/bins} (k = 0 … bins).
+///
+/// Why: at high albedo the vertices of exiting paths spread over the
+/// diffusion length 1/σ_tr (σ_tr = √(3σ_a σ_t′); 7 MFP at α = 0.99, 22 MFP
+/// at 0.999), far beyond a core of a few λ. An analog walk at α = 0.99
+/// holds 95–96 % of the vertex weight within ±4λ, 99.1 % within ±8λ, and
+/// at α = 0.999 87 % within ±4λ, 98.9 % within ±16λ (docs/method.md §3,
+/// "Grids"). Bins of the core's width out there would multiply the bins
+/// (and the fit's cost) for a density that is smooth: log-spaced bins keep
+/// the window's tail in a few dozen.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Tail {
+    pub bins: usize,
+    /// The far edge Y, in units of λ (> `PairGrid::extent`).
+    pub extent: f64,
 }
 
 fn one() -> usize {
@@ -100,13 +128,15 @@ impl Default for PairGrid {
             nv: 16,
             extent: 4.0,
             vertex_refine: 4,
+            tail: None,
         }
     }
 }
 
 impl PairGrid {
     /// The grid of one vertex class's histogram: this one for all vertices,
-    /// `vertex_refine` times finer for the first and the last.
+    /// `vertex_refine` times finer for the first and the last, without the
+    /// tail (one vertex lies within a few MFP of its end of the pair).
     pub fn for_class(&self, class: VertexClass) -> PairGrid {
         match class {
             VertexClass::All => PairGrid {
@@ -118,13 +148,31 @@ impl PairGrid {
                 nv: self.nv * self.vertex_refine,
                 extent: self.extent,
                 vertex_refine: 1,
+                tail: None,
             },
         }
     }
 
+    /// Tail bins per side (0 without a tail).
+    fn tail_bins(&self) -> usize {
+        self.tail.map_or(0, |t| t.bins)
+    }
+
+    /// Bins along u and along v, the tail's included.
+    pub fn shape(&self) -> (usize, usize) {
+        let n = self.tail_bins();
+        (self.nu + 2 * n, self.nv + n)
+    }
+
     /// Bins, without the overflow bin (which has index `bins()`).
     pub fn bins(&self) -> usize {
-        self.nu * self.nv
+        let (nu, nv) = self.shape();
+        nu * nv
+    }
+
+    /// The window's half-width in units of λ: the tail's far edge, or the core's.
+    pub fn window(&self) -> f64 {
+        self.tail.map_or(self.extent, |t| t.extent)
     }
 
     /// λ = d/2 + ℓ in MFP for pair distance d and mean free path ℓ = 1/σ_t.
@@ -132,30 +180,97 @@ impl PairGrid {
         0.5 * d + mfp
     }
 
-    /// Bin of the normalised position (u, v ≥ 0); `bins()` if outside.
-    #[inline]
-    pub fn index(&self, u: f64, v: f64) -> usize {
-        let iu = ((u + self.extent) / (2.0 * self.extent) * self.nu as f64).floor();
-        let iv = (v / self.extent * self.nv as f64).floor();
-        if iu >= 0.0 && iu < self.nu as f64 && iv >= 0.0 && iv < self.nv as f64 {
-            iu as usize * self.nv + iv as usize
-        } else {
-            self.bins()
+    /// Tail edge r_k = X·(Y/X)^{k/bins} (`Tail`); r_0 = X, r_bins = Y exactly.
+    fn tail_edge(&self, t: &Tail, k: usize) -> f64 {
+        match k {
+            0 => self.extent,
+            k if k == t.bins => t.extent,
+            k => self.extent * (t.extent / self.extent).powf(k as f64 / t.bins as f64),
         }
     }
 
-    /// Edges in u (nu + 1).
-    pub fn u_edges(&self) -> Vec<f64> {
-        (0..=self.nu)
-            .map(|k| -self.extent + 2.0 * self.extent * k as f64 / self.nu as f64)
-            .collect()
+    /// The tail bin k (0 … bins − 1, outward) holding distance a ≥ X from
+    /// the core's centre, with [r_k, r_{k+1}) (`upper` false) or (r_k, r_{k+1}]
+    /// (`upper` true, the mirrored side of u); None beyond the far edge.
+    fn tail_index(&self, t: &Tail, a: f64, upper: bool) -> Option<usize> {
+        let inside = |k: usize| {
+            let (lo, hi) = (self.tail_edge(t, k), self.tail_edge(t, k + 1));
+            if upper {
+                a > lo && a <= hi
+            } else {
+                a >= lo && a < hi
+            }
+        };
+        let guess = (t.bins as f64 * (a / self.extent).ln() / (t.extent / self.extent).ln())
+            .floor()
+            .clamp(0.0, (t.bins - 1) as f64) as usize;
+        // The guess is off by at most one where rounding puts a on an edge.
+        [guess, guess.saturating_sub(1), (guess + 1).min(t.bins - 1)]
+            .into_iter()
+            .find(|&k| inside(k))
     }
 
-    /// Edges in v (nv + 1).
+    /// Bin of the normalised position (u, v ≥ 0); `bins()` if outside.
+    #[inline]
+    pub fn index(&self, u: f64, v: f64) -> usize {
+        let Some(t) = self.tail else {
+            let iu = ((u + self.extent) / (2.0 * self.extent) * self.nu as f64).floor();
+            let iv = (v / self.extent * self.nv as f64).floor();
+            return if iu >= 0.0 && iu < self.nu as f64 && iv >= 0.0 && iv < self.nv as f64 {
+                iu as usize * self.nv + iv as usize
+            } else {
+                self.bins()
+            };
+        };
+        let x = self.extent;
+        let n = t.bins;
+        let core = |y: f64, lo: f64, nb: usize| {
+            (((y - lo) / (x - lo) * nb as f64).floor() as usize).min(nb - 1)
+        };
+        let iu = if (-x..x).contains(&u) {
+            Some(n + core(u, -x, self.nu))
+        } else if u < -x {
+            self.tail_index(&t, -u, true).map(|k| n - 1 - k)
+        } else {
+            self.tail_index(&t, u, false).map(|k| n + self.nu + k)
+        };
+        let iv = if (0.0..x).contains(&v) {
+            Some(core(v, 0.0, self.nv))
+        } else if v >= x {
+            self.tail_index(&t, v, false).map(|k| self.nv + k)
+        } else {
+            None
+        };
+        match (iu, iv) {
+            (Some(iu), Some(iv)) => iu * (self.nv + n) + iv,
+            _ => self.bins(),
+        }
+    }
+
+    /// Edges in u (`shape().0` + 1).
+    pub fn u_edges(&self) -> Vec<f64> {
+        let core =
+            (0..=self.nu).map(|k| -self.extent + 2.0 * self.extent * k as f64 / self.nu as f64);
+        match self.tail {
+            None => core.collect(),
+            Some(t) => (1..=t.bins)
+                .rev()
+                .map(|k| -self.tail_edge(&t, k))
+                .chain(core)
+                .chain((1..=t.bins).map(|k| self.tail_edge(&t, k)))
+                .collect(),
+        }
+    }
+
+    /// Edges in v (`shape().1` + 1).
     pub fn v_edges(&self) -> Vec<f64> {
-        (0..=self.nv)
-            .map(|k| self.extent * k as f64 / self.nv as f64)
-            .collect()
+        let core = (0..=self.nv).map(|k| self.extent * k as f64 / self.nv as f64);
+        match self.tail {
+            None => core.collect(),
+            Some(t) => core
+                .chain((1..=t.bins).map(|k| self.tail_edge(&t, k)))
+                .collect(),
+        }
     }
 }
 
@@ -1057,6 +1172,15 @@ impl KernelConfig {
                 "nu, nv >= 1, extent > 0, vertex_refine in 1..=8",
             ));
         }
+        if let Some(t) = g.tail
+            && (t.bins == 0 || t.bins > 64 || !t.extent.is_finite() || t.extent <= g.extent)
+        {
+            return Err(Error::param(
+                "grid.tail",
+                format!("bins {}, extent {}", t.bins, t.extent),
+                "bins in 1..=64 and a finite far edge beyond the core's extent",
+            ));
+        }
         Ok(())
     }
 
@@ -1910,6 +2034,86 @@ mod tests {
     use super::*;
 
     /// One cell at d = 1 (λ = 1) and paths given by their vertex lists.
+    /// The default grid with a tail of 6 bins out to ±16λ.
+    fn tailed() -> PairGrid {
+        PairGrid {
+            tail: Some(Tail {
+                bins: 6,
+                extent: 16.0,
+            }),
+            ..PairGrid::default()
+        }
+    }
+
+    #[test]
+    fn a_tail_bins_every_point_of_its_window_where_its_edges_say() {
+        let g = tailed();
+        let (ue, ve) = (g.u_edges(), g.v_edges());
+        assert_eq!((ue.len() - 1, ve.len() - 1), g.shape());
+        assert_eq!((g.shape(), g.bins()), ((32 + 12, 16 + 6), 44 * 22));
+        assert_eq!((ue[0], ue[44], ve[22]), (-16.0, 16.0, 16.0));
+        assert!(ue.windows(2).chain(ve.windows(2)).all(|e| e[0] < e[1]));
+        // The core's edges are the grid's without a tail, exactly.
+        assert_eq!(ue[6..=38], PairGrid::default().u_edges()[..]);
+        assert_eq!(ve[..=16], PairGrid::default().v_edges()[..]);
+        // Log-spaced: each tail bin 16/4 ^ (1/6) times as far out as the last.
+        let q = 4f64.powf(1.0 / 6.0);
+        assert!(ve[17..].windows(2).all(|e| (e[1] / e[0] - q).abs() < 1e-12));
+        // Random points and every edge itself land in the bin [lo, hi) ×
+        // [lo, hi) whose edges hold them, or in the overflow outside
+        // [−16, 16) × [0, 16).
+        let mut rng = PathRng::new(7, 0);
+        let mut points: Vec<(f64, f64)> = (0..20_000)
+            .map(|_| (40.0 * rng.uniform() - 20.0, 20.0 * rng.uniform()))
+            .collect();
+        points.extend(ue.iter().map(|&u| (u, 1.0)));
+        points.extend(ve.iter().map(|&v| (0.3, v)));
+        for (u, v) in points {
+            let b = g.index(u, v);
+            if !((-16.0..16.0).contains(&u) && (0.0..16.0).contains(&v)) {
+                assert_eq!(b, g.bins(), "{u} {v}");
+                continue;
+            }
+            let (iu, iv) = (b / g.shape().1, b % g.shape().1);
+            assert!(
+                ue[iu] <= u && u < ue[iu + 1] && ve[iv] <= v && v < ve[iv + 1],
+                "{u} {v} in {iu} {iv}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_tail_holds_the_far_vertices_and_leaves_the_other_classes_alone() {
+        let g = tailed();
+        let mut c = CellTally::new(&g);
+        let mut scratch = Vec::new();
+        // λ = 1: one path with vertices in the core, in the tail along u and
+        // across, and beyond the far edge; its last vertex in the core.
+        let vertices = [[0.5, 30.0], [-9.0, 0.2], [0.5, 10.0], [0.4, 0.1]];
+        c.add_path(&g, [1.0, 0.0], 1.0, &vertices, 1, &mut scratch);
+        let all = c.normalized(&g, VertexClass::All, 0.5, 1.0, 1.0);
+        assert_eq!(all.mass.len(), g.bins());
+        assert_eq!(all.overflow, 0.25);
+        assert_eq!(all.mass[g.index(-9.5, 0.2)], 0.25);
+        assert_eq!(all.mass[g.index(0.0, 10.0)], 0.25);
+        assert_eq!(all.mass[g.index(-0.1, 0.1)], 0.25);
+        let last = c.normalized(&g, VertexClass::Last, 0.5, 1.0, 1.0);
+        assert_eq!(last.mass.len(), 128 * 64);
+        assert_eq!(
+            last.u_edges,
+            PairGrid::default().for_class(VertexClass::Last).u_edges()
+        );
+        // The tail is written only where there is one, and reads back.
+        let json = serde_json::to_string(&g).unwrap();
+        assert!(json.contains("tail"));
+        assert_eq!(serde_json::from_str::<PairGrid>(&json).unwrap(), g);
+        assert!(
+            !serde_json::to_string(&PairGrid::default())
+                .unwrap()
+                .contains("tail")
+        );
+    }
+
     fn cell(paths: &[Vec<[f64; 2]>]) -> (PairGrid, CellTally) {
         let grid = PairGrid::default();
         let mut c = CellTally::new(&grid);

@@ -234,7 +234,7 @@ pub fn aggregation_summary(rows: &[AggregationRow]) -> String {
             r.len()
         );
     }
-    s += "vertices  window holds (worst cell)          whole plane: |Δ mean t| worst   rms s meta/data   within the targets (or 2 se of the data): mean t, rms s\n";
+    s += "vertices  window holds (worst cell)           below 99 %   whole plane: |Δ mean t| worst   rms s meta/data   within the targets (or 2 se of the data): mean t, rms s\n";
     for class in classes {
         let r = of(class);
         let Some(w) = r.iter().min_by(|a, b| a.window.total_cmp(&b.window)) else {
@@ -261,12 +261,14 @@ pub fn aggregation_summary(rows: &[AggregationRow]) -> String {
                 })
                 .count()
         };
+        let short = r.iter().filter(|x| x.window < WINDOW_SHARE).count();
         s += &format!(
-            "{:<9} {:>6.2} % (α = {}, d = {} MFP)        {:>8.3} MFP               {lo:.2}–{hi:.2}         {} ({}), {} ({}) of {}\n",
+            "{:<9} {:>6.2} % (α = {}, d = {} MFP)  {short:>4} of {:<4}   {:>8.3} MFP               {lo:.2}–{hi:.2}         {} ({}), {} ({}) of {}\n",
             class.name(),
             100.0 * w.window,
             w.alpha,
             w.d,
+            r.len(),
             dt,
             within(0, false),
             within(0, true),
@@ -277,6 +279,11 @@ pub fn aggregation_summary(rows: &[AggregationRow]) -> String {
     }
     s
 }
+
+/// The share of a cell's vertex weight its window should hold: the fit
+/// sees the bins, and beyond them only the overflow's mass and the
+/// whole-plane moments.
+pub const WINDOW_SHARE: f64 = 0.99;
 
 /// Whether the meta-model's whole-plane moments meet the targets against
 /// the data's ([`crate::fit::gmm::moment_tolerances`]: |Δ mean t| within

@@ -114,6 +114,7 @@ pub fn training_config() -> KernelConfig {
             nv: 16,
             extent: 4.0,
             vertex_refine: 4,
+            tail: None,
         },
         runs: Vec::new(),
     }
