@@ -1998,6 +1998,7 @@ const FLAGS: &[(&str, &str)] = &[
     ("distances", "--distances"),
     ("rel_width", "--rel-width"),
     ("grid", "--nu/--nv/--extent"),
+    ("grid.tail", "--tail-bins/--tail-extent"),
     ("vertices", "--vertices"),
     ("meta_model", "--model"),
     ("method", "--method"),

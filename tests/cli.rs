@@ -275,6 +275,52 @@ fn kernel_shards_merge_to_the_unsharded_result() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("--distances"), "{err}");
     assert!(!bad.exists());
+    // So is a tail that ends inside the core.
+    let o = bin()
+        .args(["simulate", "kernels", "--extent", "4", "--tail-bins", "4"])
+        .args(["--tail-extent", "3", "--out"])
+        .arg(&bad)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("--tail-extent"),
+        "{err}"
+    );
+    assert!(!bad.exists());
+    // A tail's shards merge like the core's, and it holds vertices the core
+    // does not: the all-vertex overflow shrinks, the other classes keep theirs.
+    let core = d.join("core.json");
+    run(&["--extent", "1"], &core);
+    let tail = ["--extent", "1", "--tail-bins", "6", "--tail-extent", "16"];
+    let tailed = d.join("tailed.json");
+    run(&tail, &tailed);
+    let parts: Vec<PathBuf> = (0..2)
+        .map(|k| {
+            let p = d.join(format!("t{k}.json"));
+            run(&[&tail[..], &["--shard", &format!("{k}/2")]].concat(), &p);
+            p
+        })
+        .collect();
+    merge_ok(&parts, &merged);
+    let (t, m) = (json(&tailed), json(&merged));
+    assert_eq!(t["tally"], m["tally"]);
+    assert_eq!(t["config"]["grid"]["tail"]["bins"], 6);
+    let overflow = |doc: &serde_json::Value, class: usize| -> f64 {
+        let c = &doc["tally"]["cells"][1][0]["classes"][class]["count"];
+        let n = c["len"].as_u64().unwrap() - 1;
+        let nz = c["nz"].as_array().unwrap();
+        let at = |i: u64| -> f64 {
+            nz.iter()
+                .find(|e| e[0] == i)
+                .map_or(0.0, |e| e[1].as_f64().unwrap())
+        };
+        at(n) / nz.iter().map(|e| e[1].as_f64().unwrap()).sum::<f64>()
+    };
+    let c = json(&core);
+    let (o_core, o_tail) = (overflow(&c, 0), overflow(&t, 0));
+    assert!(o_core > 0.05 && o_tail < 0.1 * o_core, "{o_core} {o_tail}");
+    assert_eq!(overflow(&t, 2), overflow(&c, 2));
 }
 
 /// `render`: the reference rendered in two shards, merged with `merge` and
