@@ -206,3 +206,32 @@ pub fn aggregation_row_of(
         plane: None,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::forward::kernel::{PairGrid, Tail};
+
+    #[test]
+    fn wide_bins_are_sampled_in_proportion_up_to_the_cap() {
+        // A uniform grid keeps 4 sub-samples per bin, so its aggregation
+        // errors are those of a grid without a tail.
+        let core = PairGrid::default();
+        assert!(subsamples(&core.u_edges()).iter().all(|b| b.2 == 4));
+        // A tail's bins get 4 per narrowest-bin width, at most the cap.
+        let g = PairGrid {
+            tail: Some(Tail {
+                bins: 16,
+                extent: 16.0,
+            }),
+            ..core
+        };
+        let v = subsamples(&g.v_edges());
+        assert!(v[..16].iter().all(|b| b.2 == 4));
+        // Tail edges 4·4^(k/16): its bins are 1.45, 1.58, … and 5.3 bins
+        // of λ/4 wide.
+        assert_eq!((v[16].2, v[17].2), (4, 8));
+        assert_eq!(v[31].2, MAX_SUBSAMPLES);
+        assert!(v.windows(2).all(|w| w[0].2 <= w[1].2));
+    }
+}
