@@ -142,10 +142,12 @@ impl BuildConfig {
                 paths: 10_000_000,
                 seed: 6000,
                 // The presets were built on one grid for every vertex
-                // class; a build on the refined last-vertex grid of the
-                // default medium's model has not been measured.
+                // class, without a tail; a build on the refined last-vertex
+                // grid and the tail of the default medium's model has not
+                // been measured.
                 grid: PairGrid {
                     vertex_refine: 1,
+                    tail: None,
                     ..crate::jobs::shipped::training_config().grid
                 },
                 ..crate::jobs::shipped::training_config()

@@ -114,7 +114,10 @@ pub fn training_config() -> KernelConfig {
             nv: 16,
             extent: 4.0,
             vertex_refine: 4,
-            tail: None,
+            tail: Some(crate::forward::kernel::Tail {
+                bins: 8,
+                extent: 16.0,
+            }),
         },
         runs: Vec::new(),
     }
