@@ -100,9 +100,9 @@ pub struct PairGrid {
 ///
 /// Why: at high albedo the vertices of exiting paths spread over the
 /// diffusion length 1/σ_tr (σ_tr = √(3σ_a σ_t′); 7 MFP at α = 0.99, 22 MFP
-/// at 0.999), far beyond a core of a few λ. An analog walk at α = 0.99
-/// holds 95–96 % of the vertex weight within ±4λ, 99.1 % within ±8λ, and
-/// at α = 0.999 87 % within ±4λ, 98.9 % within ±16λ (docs/method.md §3,
+/// at 0.999), far beyond a core of a few λ. Of an analog walk's vertex
+/// weight at α = 0.99, a window of ±4λ holds as little as 95 %, ±8λ 99.1 %;
+/// at α = 0.999, ±4λ as little as 86 %, ±16λ 98.9 % (docs/method.md §3,
 /// "Grids"). Bins of the core's width out there would multiply the bins
 /// (and the fit's cost) for a density that is smooth: log-spaced bins keep
 /// the window's tail in a few dozen.
@@ -170,11 +170,6 @@ impl PairGrid {
         nu * nv
     }
 
-    /// The window's half-width in units of λ: the tail's far edge, or the core's.
-    pub fn window(&self) -> f64 {
-        self.tail.map_or(self.extent, |t| t.extent)
-    }
-
     /// λ = d/2 + ℓ in MFP for pair distance d and mean free path ℓ = 1/σ_t.
     pub fn scale(d: f64, mfp: f64) -> f64 {
         0.5 * d + mfp
@@ -190,12 +185,13 @@ impl PairGrid {
     }
 
     /// The tail bin k (0 … bins − 1, outward) holding distance a ≥ X from
-    /// the core's centre, with [r_k, r_{k+1}) (`upper` false) or (r_k, r_{k+1}]
-    /// (`upper` true, the mirrored side of u); None beyond the far edge.
-    fn tail_index(&self, t: &Tail, a: f64, upper: bool) -> Option<usize> {
+    /// the core's centre, with [r_k, r_{k+1}), or (r_k, r_{k+1}] when
+    /// `mirrored` (a = −u on the negative side of u, whose bins are
+    /// [−r_{k+1}, −r_k)); None beyond the far edge.
+    fn tail_index(&self, t: &Tail, a: f64, mirrored: bool) -> Option<usize> {
         let inside = |k: usize| {
             let (lo, hi) = (self.tail_edge(t, k), self.tail_edge(t, k + 1));
-            if upper {
+            if mirrored {
                 a > lo && a <= hi
             } else {
                 a >= lo && a < hi
@@ -2033,7 +2029,6 @@ impl<A: super::walk::AlbedoField + Sync, D: super::walk::DensityField + Sync>
 mod tests {
     use super::*;
 
-    /// One cell at d = 1 (λ = 1) and paths given by their vertex lists.
     /// The default grid with a tail of 6 bins out to ±16λ.
     fn tailed() -> PairGrid {
         PairGrid {
@@ -2114,6 +2109,7 @@ mod tests {
         );
     }
 
+    /// One cell at d = 1 (λ = 1) and paths given by their vertex lists.
     fn cell(paths: &[Vec<[f64; 2]>]) -> (PairGrid, CellTally) {
         let grid = PairGrid::default();
         let mut c = CellTally::new(&grid);
