@@ -380,14 +380,17 @@ pub fn kernel_plots(
                 let h = crate::fit::meta::histogram_from_doc(doc, ia, id, class);
                 let meta = file.eval(class, d, a, 1.0).gmm;
                 let manual = manual_kernel(d);
-                let (nt, ns) = (h.t_edges.len() - 1, h.s_edges.len() - 1);
+                // The core's bins only: a tail's wider bins would show their
+                // mass, not the density, on equal cells.
+                let tail = doc.config.grid.for_class(class).tail.map_or(0, |t| t.bins);
+                let (nt, ns) = (h.t_edges.len() - 1 - 2 * tail, h.s_edges.len() - 1 - tail);
                 // Unfold |s| into s ∈ (−S, S): rows j < ns mirror the upper half.
                 let unfold = |m: &[f64]| -> Vec<f64> {
                     let mut out = Vec::with_capacity(nt * 2 * ns);
                     for i in 0..nt {
                         for j in 0..2 * ns {
                             let jj = if j < ns { ns - 1 - j } else { j - ns };
-                            out.push(m[i * ns + jj]);
+                            out.push(m[(i + tail) * (ns + tail) + jj]);
                         }
                     }
                     out
@@ -413,7 +416,7 @@ pub fn kernel_plots(
         heatmaps(
             &dir.join(format!("kernels_{class:?}.png").to_lowercase()),
             &format!(
-                "{class:?} vertices: measured | meta-model | manual, t → (x_i left of centre, x_e right), s ↑, sqrt colour scale"
+                "{class:?} vertices: measured | meta-model | manual, t → (x_i left of centre, x_e right), s ↑, the window's core, sqrt colour scale"
             ),
             &panels,
             9,
