@@ -7,8 +7,9 @@
 //! the kernel's mass in bin b and Ā_b the texture averaged over bin b and
 //! its mirror image in s (the histogram is folded in |s|), by 4 × 4
 //! sub-samples per bin (more in the wider bins of a window's tail). The
-//! reference is the measured histogram; the error of a kernel is the RMS over textures of α_t(K) − α_t(histogram). Off-grid
-//! mass is left out of every method alike.
+//! reference is the measured histogram; the error of a kernel is the RMS
+//! over textures of α_t(K) − α_t(histogram). Off-grid mass is left out of
+//! every method alike.
 
 use crate::fit::gmm::{KernelHistogram, histogram_of};
 use crate::fit::meta::{Cell, PlaneMoments};
