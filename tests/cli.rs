@@ -7,6 +7,7 @@ use std::time::{Duration, Instant};
 
 mod common;
 use common::bin;
+use svkernel::forward::kernel::{KernelDoc, VertexClass};
 
 fn tmpdir(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("svk-cli-{name}-{}", std::process::id()));
@@ -306,21 +307,22 @@ fn kernel_shards_merge_to_the_unsharded_result() {
     let (t, m) = (json(&tailed), json(&merged));
     assert_eq!(t["tally"], m["tally"]);
     assert_eq!(t["config"]["grid"]["tail"]["bins"], 6);
-    let overflow = |doc: &serde_json::Value, class: usize| -> f64 {
-        let c = &doc["tally"]["cells"][1][0]["classes"][class]["count"];
-        let n = c["len"].as_u64().unwrap() - 1;
-        let nz = c["nz"].as_array().unwrap();
-        let at = |i: u64| -> f64 {
-            nz.iter()
-                .find(|e| e[0] == i)
-                .map_or(0.0, |e| e[1].as_f64().unwrap())
-        };
-        at(n) / nz.iter().map(|e| e[1].as_f64().unwrap()).sum::<f64>()
+    // The overflow's share of cell (α = 0.95, d = 0.5) as the fits read it.
+    let overflow = |path: &Path, class: VertexClass| -> f64 {
+        KernelDoc::load(path)
+            .unwrap()
+            .histogram(1, 0, class)
+            .overflow
     };
-    let c = json(&core);
-    let (o_core, o_tail) = (overflow(&c, 0), overflow(&t, 0));
+    let (o_core, o_tail) = (
+        overflow(&core, VertexClass::All),
+        overflow(&tailed, VertexClass::All),
+    );
     assert!(o_core > 0.05 && o_tail < 0.1 * o_core, "{o_core} {o_tail}");
-    assert_eq!(overflow(&t, 2), overflow(&c, 2));
+    assert_eq!(
+        overflow(&tailed, VertexClass::Last),
+        overflow(&core, VertexClass::Last)
+    );
 }
 
 /// `render`: the reference rendered in two shards, merged with `merge` and
