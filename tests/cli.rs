@@ -308,12 +308,11 @@ fn kernel_shards_merge_to_the_unsharded_result() {
     assert_eq!(t["tally"], m["tally"]);
     assert_eq!(t["config"]["grid"]["tail"]["bins"], 6);
     // The overflow's share of cell (α = 0.95, d = 0.5) as the fits read it.
-    let overflow = |path: &Path, class: VertexClass| -> f64 {
-        KernelDoc::load(path)
-            .unwrap()
-            .histogram(1, 0, class)
-            .overflow
-    };
+    let (core, tailed) = (
+        KernelDoc::load(&core).unwrap(),
+        KernelDoc::load(&tailed).unwrap(),
+    );
+    let overflow = |doc: &KernelDoc, class: VertexClass| doc.histogram(1, 0, class).overflow;
     let (o_core, o_tail) = (
         overflow(&core, VertexClass::All),
         overflow(&tailed, VertexClass::All),

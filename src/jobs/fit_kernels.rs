@@ -383,7 +383,7 @@ pub fn kernel_plots(
                 // The core's bins only: a tail's wider bins would show their
                 // mass, not the density, on equal cells.
                 let tail = doc.config.grid.for_class(class).tail.map_or(0, |t| t.bins);
-                let (nt, ns) = (h.t_edges.len() - 1 - 2 * tail, h.s_edges.len() - 1 - tail);
+                let (nt, ns) = (h.nt() - 2 * tail, h.ns() - tail);
                 // Unfold |s| into s ∈ (−S, S): rows j < ns mirror the upper half.
                 let unfold = |m: &[f64]| -> Vec<f64> {
                     let mut out = Vec::with_capacity(nt * 2 * ns);
